@@ -1,0 +1,251 @@
+"""The package's single definition of viewpoints, camera frames, angle bins and voxel grids.
+
+Every module that touches an angle, a camera or a voxel index imports from here, so the
+renderer, the error projection and the Zero-1-to-3 pose cannot drift apart.
+
+Conventions (all angles in **degrees** unless a name says ``rad``):
+
+* World frame: right-handed, +Z up. Objects live in the cube ``[-0.5, 0.5]^3``.
+* A viewpoint is ``(yaw, pitch)``; roll is 0. Yaw is measured about +Z from +X toward +Y and
+  lives in ``[-180, 180)``; pitch is the elevation above the XY plane, in ``[-90, 90]``.
+* The camera centre is ``r (cos p cos y, cos p sin y, sin p)`` and looks at the origin.
+  Its up vector is ``(-sin p cos y, -sin p sin y, cos p)``, defined at the poles too.
+  Its right vector is ``forward x up``.
+* Images are indexed ``[row, col]`` with row 0 at the top (largest camera-up coordinate) and
+  col 0 at the left (smallest camera-right coordinate). An orthographic view of half-extent
+  ``s`` maps pixel centre ``(row, col)`` of an ``H x W`` image to camera coordinates
+  ``x = -s + (col + 0.5) 2s / W``, ``y = s - (row + 0.5) 2s / H``.
+* Voxel ``V[i, j, k]`` of an ``R^3`` grid has its centre at
+  ``((i + 0.5) / R - 0.5, (j + 0.5) / R - 0.5, (k + 0.5) / R - 0.5)`` in ``(x, y, z)``.
+* Angle bins of interval ``K`` (``K`` divides 180): yaw centres ``-180 + (i - 1/2) K`` for
+  ``i = 1..360/K`` and pitch centres ``-90 + (i - 1/2) K`` for ``i = 1..180/K``.
+  :func:`candidate_viewpoints` flattens them pitch-major: index ``= i_pitch * n_yaw + i_yaw``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "DEFAULT_RESOLUTION",
+    "angle_bins",
+    "angular_distance",
+    "camera_basis",
+    "camera_center",
+    "camera_pose",
+    "camera_up",
+    "candidate_viewpoints",
+    "check_bin_interval",
+    "check_viewpoints",
+    "clamp_pitch",
+    "normalize_viewpoints",
+    "orthographic_pixel_coords",
+    "rotate_directions",
+    "sample_gaussian_viewpoints",
+    "sample_uniform_viewpoints",
+    "view_direction",
+    "voxel_centers",
+    "world_to_voxel_index",
+    "wrap_yaw",
+]
+
+DEFAULT_RESOLUTION = 32
+
+
+def _as_tensor(x: Tensor | np.ndarray | float | list, dtype: torch.dtype | None = None) -> Tensor:
+    if isinstance(x, Tensor):
+        return x if dtype is None or x.dtype == dtype else x.to(dtype)
+    t = torch.as_tensor(np.asarray(x))
+    if dtype is not None:
+        return t.to(dtype)
+    return t if t.is_floating_point() else t.to(torch.get_default_dtype())
+
+
+def check_viewpoints(viewpoints: Tensor, name: str = "viewpoints") -> Tensor:
+    """Check that ``viewpoints`` has shape ``(..., 2)`` and finite values; return it as a float tensor."""
+    vp = _as_tensor(viewpoints)
+    if not vp.is_floating_point():
+        vp = vp.to(torch.get_default_dtype())
+    if vp.ndim == 0 or vp.shape[-1] != 2:
+        raise ValueError(f"`{name}` must have shape (..., 2) holding (yaw, pitch) in degrees, got {tuple(vp.shape)}")
+    if not torch.isfinite(vp).all():
+        raise ValueError(f"`{name}` contains NaN or infinite angles")
+    return vp
+
+
+def wrap_yaw(yaw: Tensor) -> Tensor:
+    """Wrap yaw angles (degrees) into ``[-180, 180)``."""
+    yaw = _as_tensor(yaw)
+    return torch.remainder(yaw + 180.0, 360.0) - 180.0
+
+
+def clamp_pitch(pitch: Tensor) -> Tensor:
+    """Clamp pitch angles (degrees) into ``[-90, 90]``."""
+    return _as_tensor(pitch).clamp(-90.0, 90.0)
+
+
+def normalize_viewpoints(viewpoints: Tensor) -> Tensor:
+    """Wrap yaw and clamp pitch of ``(..., 2)`` viewpoints in degrees."""
+    vp = check_viewpoints(viewpoints)
+    return torch.stack([wrap_yaw(vp[..., 0]), clamp_pitch(vp[..., 1])], dim=-1)
+
+
+def _trig(viewpoints: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    vp = check_viewpoints(viewpoints)
+    yaw, pitch = torch.deg2rad(vp[..., 0]), torch.deg2rad(vp[..., 1])
+    return torch.cos(yaw), torch.sin(yaw), torch.cos(pitch), torch.sin(pitch)
+
+
+def camera_center(viewpoints: Tensor, radius: float = 1.0) -> Tensor:
+    """Camera centres ``(..., 3)`` for viewpoints ``(..., 2)`` (degrees) at distance ``radius``."""
+    cy, sy, cp, sp = _trig(viewpoints)
+    return torch.stack([cp * cy, cp * sy, sp], dim=-1) * radius
+
+
+def view_direction(viewpoints: Tensor) -> Tensor:
+    """Unit viewing directions ``(..., 3)``: from the camera toward the origin."""
+    return -camera_center(viewpoints)
+
+
+def camera_up(viewpoints: Tensor) -> Tensor:
+    """Camera up vectors ``(..., 3)``; well defined at pitch = +-90 degrees."""
+    cy, sy, cp, sp = _trig(viewpoints)
+    return torch.stack([-sp * cy, -sp * sy, cp], dim=-1)
+
+
+def camera_basis(viewpoints: Tensor) -> Tensor:
+    """World-to-camera rotations ``(..., 3, 3)`` in the OpenGL camera convention.
+
+    Rows are the camera's right, up and backward (``-forward``) axes in world coordinates,
+    so ``R @ p`` gives camera coordinates with x right, y up and the camera looking along -z.
+    """
+    forward = view_direction(viewpoints)
+    up = camera_up(viewpoints)
+    right = torch.linalg.cross(forward, up, dim=-1)
+    return torch.stack([right, up, -forward], dim=-2)
+
+
+def camera_pose(viewpoints: Tensor, radius: float = 1.0) -> Tensor:
+    """Camera-to-world 4x4 matrices ``(..., 4, 4)`` (OpenGL / pyrender convention)."""
+    rot = camera_basis(viewpoints)
+    center = camera_center(viewpoints, radius)
+    pose = torch.zeros(*rot.shape[:-2], 4, 4, dtype=rot.dtype, device=rot.device)
+    pose[..., :3, :3] = rot.transpose(-1, -2)
+    pose[..., :3, 3] = center
+    pose[..., 3, 3] = 1.0
+    return pose
+
+
+def rotate_directions(directions: Tensor, rotation: Tensor) -> Tensor:
+    """Apply rotations ``(..., 3, 3)`` to vectors ``(..., 3)`` (broadcasting over leading dims)."""
+    directions = _as_tensor(directions)
+    rotation = _as_tensor(rotation, directions.dtype)
+    return (rotation @ directions[..., None])[..., 0]
+
+
+def orthographic_pixel_coords(points: Tensor, viewpoints: Tensor, image_size: int, half_extent: float) -> Tensor:
+    """Project world points onto orthographic image planes.
+
+    Args:
+        points: ``(N, 3)`` world coordinates.
+        viewpoints: ``(V, 2)`` (yaw, pitch) in degrees.
+        image_size: ``H = W`` in pixels.
+        half_extent: half the side of the square the image covers, in world units.
+
+    Returns:
+        ``(V, N, 3)``: continuous ``(row, col)`` pixel coordinates (pixel centres at ``.5``) and the
+        depth along the viewing direction (smaller is nearer the camera; relative to the origin).
+    """
+    rot = camera_basis(viewpoints).to(_as_tensor(points).dtype)  # (V, 3, 3)
+    cam = torch.einsum("vij,nj->vni", rot, _as_tensor(points))
+    scale = image_size / (2.0 * half_extent)
+    col = (cam[..., 0] + half_extent) * scale
+    row = (half_extent - cam[..., 1]) * scale
+    depth = -cam[..., 2]  # distance in front of a camera placed at the origin looking along -z
+    return torch.stack([row, col, depth], dim=-1)
+
+
+def check_bin_interval(k: float) -> int:
+    """Validate an angle-bin interval ``K`` (degrees): a positive integer dividing 180."""
+    if isinstance(k, bool) or not float(k).is_integer() or k <= 0 or 180 % int(k) != 0:
+        raise ValueError(f"The bin interval K must be a positive integer that divides 180 (degrees), got K={k!r}")
+    return int(k)
+
+
+def angle_bins(k: float = 30) -> tuple[Tensor, Tensor]:
+    """Bin centres of interval ``K``: ``(yaw_centres (360/K,), pitch_centres (180/K,))`` in degrees."""
+    k = check_bin_interval(k)
+    yaw = -180.0 + (torch.arange(360 // k, dtype=torch.float64) + 0.5) * k
+    pitch = -90.0 + (torch.arange(180 // k, dtype=torch.float64) + 0.5) * k
+    return yaw.to(torch.get_default_dtype()), pitch.to(torch.get_default_dtype())
+
+
+def candidate_viewpoints(k: float = 30) -> Tensor:
+    """All bin-centre viewpoints ``(180/K * 360/K, 2)``, pitch-major (``i_pitch * n_yaw + i_yaw``)."""
+    yaw, pitch = angle_bins(k)
+    p, y = torch.meshgrid(pitch, yaw, indexing="ij")
+    return torch.stack([y.reshape(-1), p.reshape(-1)], dim=-1)
+
+
+def sample_uniform_viewpoints(
+    n: int,
+    *,
+    mode: Literal["angle", "area"] = "area",
+    yaw_range: tuple[float, float] = (-180.0, 180.0),
+    pitch_range: tuple[float, float] = (-90.0, 90.0),
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Sample ``n`` viewpoints ``(n, 2)`` in degrees.
+
+    ``mode="angle"`` draws yaw and pitch uniformly in their ranges; ``mode="area"`` draws
+    uniformly over the covered patch of the sphere (``sin(pitch)`` uniform).
+    """
+    if n < 0:
+        raise ValueError(f"`n` must be >= 0, got {n}")
+    if mode not in ("angle", "area"):
+        raise ValueError(f"`mode` must be 'angle' or 'area', got {mode!r}")
+    (y0, y1), (p0, p1) = yaw_range, pitch_range
+    if not (-90.0 <= p0 <= p1 <= 90.0):
+        raise ValueError(f"`pitch_range` must satisfy -90 <= low <= high <= 90, got {pitch_range}")
+    if y1 < y0:
+        raise ValueError(f"`yaw_range` must satisfy low <= high, got {yaw_range}")
+    u = torch.rand(n, 2, generator=generator, dtype=torch.float64)
+    yaw = y0 + (y1 - y0) * u[:, 0]
+    if mode == "angle":
+        pitch = p0 + (p1 - p0) * u[:, 1]
+    else:
+        s0, s1 = math.sin(math.radians(p0)), math.sin(math.radians(p1))
+        pitch = torch.rad2deg(torch.asin((s0 + (s1 - s0) * u[:, 1]).clamp(-1.0, 1.0)))
+    vp = torch.stack([wrap_yaw(yaw), pitch], dim=-1)
+    return vp.to(torch.get_default_dtype())
+
+
+def sample_gaussian_viewpoints(centres: Tensor, sigma: float, generator: torch.Generator | None = None) -> Tensor:
+    """Sample one viewpoint per centre from ``N(centre, sigma)`` per angle; wrap yaw, clamp pitch."""
+    centres = check_viewpoints(centres, "centres")
+    noise = torch.randn(centres.shape, generator=generator, dtype=torch.float64).to(centres)
+    return normalize_viewpoints(centres + sigma * noise)
+
+
+def angular_distance(a: Tensor, b: Tensor) -> Tensor:
+    """Great-circle angle (degrees) between the viewing directions of viewpoints ``a`` and ``b`` (broadcast)."""
+    da, db = camera_center(a), camera_center(b)
+    cos = (da * db).sum(-1).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cos))
+
+
+def voxel_centers(resolution: int = DEFAULT_RESOLUTION, dtype: torch.dtype = torch.float32) -> Tensor:
+    """World coordinates ``(R, R, R, 3)`` of voxel centres; ``out[i, j, k] = (x, y, z)``."""
+    c = (torch.arange(resolution, dtype=torch.float64) + 0.5) / resolution - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    return torch.stack([x, y, z], dim=-1).to(dtype)
+
+
+def world_to_voxel_index(points: Tensor, resolution: int = DEFAULT_RESOLUTION) -> Tensor:
+    """Integer voxel indices ``(..., 3)`` containing world points (may fall outside ``[0, R)``)."""
+    return torch.floor((_as_tensor(points) + 0.5) * resolution).long()
