@@ -3,12 +3,38 @@
 from __future__ import annotations
 
 import abc
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["ViewSelector"]
+__all__ = ["SelectionContext", "ViewSelector"]
+
+
+@dataclass
+class SelectionContext:
+    """What the callback can offer a selector beyond predictions and targets.
+
+    Selectors that search viewpoints by querying the model (VIAT) or learn from it (MVTN) use it;
+    the error-guided, Random and Nature selectors ignore it.
+
+    Attributes:
+        model: the reconstruction model (a :class:`~lightning_vtr.protocol.ReconstructionModel`), in eval mode.
+        synthesizer: a :class:`~lightning_vtr.synthesis.base.Synthesizer` able to render candidate views.
+        requests: one :class:`~lightning_vtr.synthesis.base.SynthesisRequest` per object (targets empty).
+        transform: turns ``(T, H, W, 4)`` uint8 RGBA images into model input ``(T, 3, h, w)`` float.
+        loss_fn: per-object reconstruction loss ``(pred (B, R, R, R), target (B, R, R, R)) -> (B,)``.
+        device: where the model lives.
+    """
+
+    model: Any
+    synthesizer: Any
+    requests: list
+    transform: Callable[[np.ndarray], Tensor]
+    loss_fn: Callable[[Tensor, Tensor], Tensor]
+    device: torch.device
 
 
 class ViewSelector(abc.ABC):
@@ -20,6 +46,9 @@ class ViewSelector(abc.ABC):
 
     #: Number of viewpoints returned per object.
     num_views: int = 3
+    #: Whether the callback should store selections in a per-category viewpoint pool and train on
+    #: view sets drawn from it (the paper's error-guided method), rather than on the selections directly.
+    uses_pool: bool = False
 
     @abc.abstractmethod
     def select(
@@ -28,6 +57,7 @@ class ViewSelector(abc.ABC):
         target: Tensor,
         categories: list[str],
         generator: torch.Generator | None = None,
+        context: SelectionContext | None = None,
     ) -> Tensor:
         """Viewpoints ``(B, num_views, 2)`` in degrees for predictions / targets ``(B, R, R, R)``."""
 
