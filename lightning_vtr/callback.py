@@ -1,0 +1,428 @@
+r"""Error-guided view augmentation: at each training epoch's end, find the views a model is weakest at,
+synthesize them and train on them next epoch.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
+from lightning.pytorch.utilities.exceptions import MisconfigurationException
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from lightning_vtr.data.dataset import GeneratedSample
+from lightning_vtr.protocol import check_reconstruction_model
+from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+
+__all__ = ["ErrorGuidedViewAugmentation"]
+
+_STATE_VERSION = 1
+# What the callback calls on the datamodule (VTRDataModule has all of it).
+_DATAMODULE_API = ("split_records", "eval_item", "object_views", "add_samples", "transform")
+
+
+@dataclass
+class _Selected:
+    index: int  # position in the datamodule's fixed train order
+    category: str
+    object_id: str
+    viewpoints: np.ndarray  # (n, 2) degrees, as chosen by the selector
+    error: float  # fraction of voxels wrong at the selection threshold
+
+
+def _generator(*key: int) -> torch.Generator:
+    # One independent stream per (seed, epoch, object, purpose): results cannot depend on how objects
+    # are split over processes or batches.
+    seed = int(np.random.SeedSequence(list(key)).generate_state(1, dtype=np.uint64)[0] >> 1)
+    return torch.Generator().manual_seed(seed)
+
+
+def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
+    if trainer.world_size == 1 or not torch.distributed.is_available() or not torch.distributed.is_initialized():
+        return [obj]
+    out: list[Any] = [None] * trainer.world_size
+    torch.distributed.all_gather_object(out, obj)
+    return out
+
+
+class ErrorGuidedViewAugmentation(L.Callback):
+    r"""Trains a multi-view reconstruction model on the viewpoints it reconstructs worst.
+
+    At the end of every training epoch but the last it
+
+    1. draws a seeded random ``fraction`` of the training objects (at least ``min_objects``),
+    2. predicts their voxels from their Aligned views (eval mode, no gradients),
+    3. asks ``selector`` for new viewpoints (error-guided by default: the views whose orthographic
+       projection of the error volume :math:`E = |V - V^{gt}|` is largest),
+    4. with a pool (the error-guided default) stores the selections per category and draws each
+       object's view set from its category's pool, preferably one found on another object,
+    5. synthesizes images at those viewpoints with ``synthesizer`` (mesh rendering by default;
+       Zero-1-to-3 with :class:`~lightning_vtr.synthesis.zero123.Zero123Synthesizer`),
+    6. adds the new (images, viewpoints, voxels) samples to the datamodule, which serves them from the
+       next epoch on (they accumulate; ``max_samples`` caps them).
+
+    Only the reconstruction model is needed at inference; nothing of this callback is.
+
+    Requirements: ``Trainer(reload_dataloaders_every_n_epochs=1)``; a datamodule with the
+    :class:`~lightning_vtr.data.VTRDataModule` API (``split_records``, ``eval_item``, ``object_views``,
+    ``add_samples``, ``transform``); a model satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
+
+    In DDP every rank works on its share of the objects (sharded by global rank in a fixed order); results
+    are gathered and merged in that order, so every rank ends the epoch with an identical dataset, and the
+    samples equal those of a single-process run. All randomness derives from ``(seed, epoch, object)``, so
+    a run resumed from a checkpoint generates exactly what an uninterrupted run does; a generation that the
+    checkpoint predates (checkpoints saved at validation end, or a run that ended on its last epoch) is
+    caught up when training resumes.
+
+    Args:
+        selector: a :class:`~lightning_vtr.selection.base.ViewSelector`; default ``ErrorGuidedSelector()``
+            (K = 30, 3 views).
+        synthesizer: a :class:`~lightning_vtr.synthesis.base.Synthesizer`; default ``RenderSynthesizer()``.
+        fraction: share of training objects searched per epoch (the paper's random update strategy: 5 %).
+        min_objects: lower bound on objects searched per epoch.
+        use_pool: store selections in a per-category viewpoint pool and sample from it; default: the
+            selector's ``uses_pool`` (True for error-guided, False for Random/Nature).
+        pool_capacity: view sets kept per category in the pool (``None``: all).
+        max_samples: cap on generated samples kept in the datamodule (oldest dropped); ``None``: all.
+        batch_size: objects per prediction / synthesis call.
+        source_view_set: which view set the objects' current views come from.
+        seed: seeds every random choice the callback makes.
+        log_images: log a grid of new views when the logger takes images (TensorBoard).
+        progress_bar: show a progress bar while synthesizing (rank 0).
+
+    Raises:
+        ValueError: on invalid arguments (names the argument and value).
+        MisconfigurationException: in ``setup`` when the Trainer, datamodule or model cannot be served.
+
+    Example::
+
+        trainer = L.Trainer(max_epochs=20, reload_dataloaders_every_n_epochs=1,
+                            callbacks=[ErrorGuidedViewAugmentation()])
+        trainer.fit(Pix2VoxPlusPlus(preset="tiny"), datamodule=VTRDataModule(image_size=64))
+    """
+
+    def __init__(
+        self,
+        selector: ViewSelector | None = None,
+        synthesizer: Synthesizer | None = None,
+        *,
+        fraction: float = 0.05,
+        min_objects: int = 1,
+        use_pool: bool | None = None,
+        pool_capacity: int | None = None,
+        max_samples: int | None = None,
+        batch_size: int = 16,
+        source_view_set: str = "aligned",
+        seed: int = 0,
+        log_images: bool = True,
+        progress_bar: bool = True,
+    ) -> None:
+        if not 0.0 < fraction <= 1.0:
+            raise ValueError(f"`fraction` must be in (0, 1], got {fraction!r}")
+        if min_objects < 1:
+            raise ValueError(f"`min_objects` must be >= 1, got {min_objects!r}")
+        if max_samples is not None and max_samples < 1:
+            raise ValueError(f"`max_samples` must be >= 1 or None, got {max_samples!r}")
+        if pool_capacity is not None and pool_capacity < 1:
+            raise ValueError(f"`pool_capacity` must be >= 1 or None, got {pool_capacity!r}")
+        if batch_size < 1:
+            raise ValueError(f"`batch_size` must be >= 1, got {batch_size!r}")
+        if selector is not None and not isinstance(selector, ViewSelector):
+            raise ValueError(f"`selector` must be a lightning_vtr ViewSelector, got {type(selector).__name__}")
+        if synthesizer is not None and not isinstance(synthesizer, Synthesizer):
+            raise ValueError(f"`synthesizer` must be a lightning_vtr Synthesizer, got {type(synthesizer).__name__}")
+        if selector is None:
+            from lightning_vtr.selection.error_guided import ErrorGuidedSelector
+
+            selector = ErrorGuidedSelector()
+        if synthesizer is None:
+            from lightning_vtr.synthesis.render import RenderSynthesizer
+
+            synthesizer = RenderSynthesizer()
+        self.selector = selector
+        self.synthesizer = synthesizer
+        self.fraction = float(fraction)
+        self.min_objects = int(min_objects)
+        self.use_pool = selector.uses_pool if use_pool is None else bool(use_pool)
+        self.max_samples = max_samples
+        self.batch_size = int(batch_size)
+        self.source_view_set = source_view_set
+        self.seed = int(seed)
+        self.log_images = log_images
+        self.progress_bar = progress_bar
+        self.pool = None
+        if self.use_pool:
+            from lightning_vtr.selection.pool import ViewpointPool
+
+            self.pool = ViewpointPool(capacity=pool_capacity, num_views=selector.num_views)
+        self.last_epoch = -1  # last epoch whose samples were generated
+        self.history: list[dict[str, Any]] = []
+
+    @property
+    def state_key(self) -> str:
+        return self._generate_state_key(selector=type(self.selector).__name__, seed=self.seed)
+
+    # ------------------------------------------------------------------ setup checks
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if stage != "fit":
+            return
+        if trainer.reload_dataloaders_every_n_epochs != 1:
+            raise MisconfigurationException(
+                "ErrorGuidedViewAugmentation adds samples at epoch ends, which the next epoch only sees if the train "
+                "dataloader is rebuilt: pass `Trainer(reload_dataloaders_every_n_epochs=1)` "
+                f"(got {trainer.reload_dataloaders_every_n_epochs})."
+            )
+        dm = trainer.datamodule
+        missing = [name for name in _DATAMODULE_API if dm is None or not hasattr(dm, name)]
+        if missing:
+            raise MisconfigurationException(
+                f"ErrorGuidedViewAugmentation needs a datamodule with {', '.join(_DATAMODULE_API)}; "
+                f"{'no datamodule was given' if dm is None else type(dm).__name__ + ' lacks ' + ', '.join(missing)}. "
+                "Use lightning_vtr.data.VTRDataModule (or implement these methods) and pass it as `datamodule=`."
+            )
+        try:
+            check_reconstruction_model(pl_module)
+        except TypeError as err:
+            raise MisconfigurationException(str(err)) from err
+        if self.selector.num_views != pl_module.num_views:
+            rank_zero_warn(
+                f"The selector returns {self.selector.num_views} views per sample but the model trains with "
+                f"{pl_module.num_views}; generated samples will have {self.selector.num_views} views."
+            )
+
+    # ------------------------------------------------------------------ hooks
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # Resuming: if the checkpoint was written before the previous epoch's samples were generated
+        # (ModelCheckpoint saves at validation end; the last epoch of a finished run generates nothing),
+        # generate them now. Lightning rebuilds the train loader at the next epoch start, so they are seen.
+        missed = trainer.current_epoch - 1
+        if missed >= 0 and self.last_epoch < missed:
+            rank_zero_info(f"ErrorGuidedViewAugmentation: catching up the generation of epoch {missed} after resume")
+            self._run(trainer, pl_module, missed)
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.sanity_checking or trainer.should_stop:
+            return
+        max_epochs = trainer.max_epochs
+        if max_epochs is not None and max_epochs >= 0 and trainer.current_epoch >= max_epochs - 1:
+            return  # nothing would train on them
+        self._run(trainer, pl_module, trainer.current_epoch)
+
+    # ------------------------------------------------------------------ the algorithm
+    def _choose_objects(self, num_train: int, epoch: int) -> list[int]:
+        count = min(num_train, max(self.min_objects, int(round(self.fraction * num_train))))
+        rng = np.random.default_rng([self.seed, epoch])
+        return sorted(rng.choice(num_train, size=count, replace=False).tolist())
+
+    def _context(self, trainer: L.Trainer, pl_module: L.LightningModule, requests: list) -> SelectionContext:
+        def loss_fn(pred: Tensor, target: Tensor) -> Tensor:
+            return F.binary_cross_entropy(pred.clamp(1e-6, 1 - 1e-6), target, reduction="none").flatten(1).mean(1)
+
+        return SelectionContext(
+            model=pl_module,
+            synthesizer=self.synthesizer,
+            requests=requests,
+            transform=trainer.datamodule.transform,
+            loss_fn=loss_fn,
+            device=pl_module.device,
+        )
+
+    @torch.no_grad()
+    def _predict(self, pl_module: L.LightningModule, images: list[Tensor]) -> Tensor:
+        preds = []
+        for start in range(0, len(images), self.batch_size):
+            batch = torch.stack(images[start : start + self.batch_size]).to(pl_module.device)
+            preds.append(pl_module.predict_voxels(batch).float().cpu())
+        return torch.cat(preds)
+
+    def _select(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, indices: list[int]) -> list[_Selected]:
+        dm = trainer.datamodule
+        records = dm.split_records("train")
+        items = [dm.eval_item(records[i], self.source_view_set, seed=epoch) for i in indices]
+        if not items:
+            return []
+        was_training = pl_module.training
+        pl_module.eval()
+        try:
+            predicted = self._predict(pl_module, [it["images"] for it in items])
+            target = torch.stack([it["voxels"] for it in items])
+            requests = [self._request(dm, records[i], torch.empty(0, 2)) for i in indices] if self._needs_context() else []
+            context = self._context(trainer, pl_module, requests) if requests else None
+            selected = []
+            for row, index in enumerate(indices):
+                rec = records[index]
+                ctx = None
+                if context is not None:
+                    ctx = SelectionContext(**{**context.__dict__, "requests": [requests[row]]})
+                views = self.selector.select(
+                    predicted[row : row + 1],
+                    target[row : row + 1],
+                    [rec.category],
+                    generator=_generator(self.seed, epoch, index, 0),
+                    context=ctx,
+                )[0]
+                error = ((predicted[row] >= 0.4).float() != target[row]).float().mean().item()
+                selected.append(_Selected(index, rec.category, rec.object_id, views.detach().cpu().numpy(), error))
+        finally:
+            pl_module.train(was_training)
+        return selected
+
+    def _needs_context(self) -> bool:
+        return bool(getattr(self.selector, "needs_context", False))
+
+    def _request(self, dm: Any, record: Any, targets: Tensor) -> SynthesisRequest:
+        images, viewpoints = dm.object_views(record, self.source_view_set)
+        return SynthesisRequest(
+            object_id=record.object_id,
+            category=record.category,
+            source_images=images,
+            source_viewpoints=torch.as_tensor(viewpoints, dtype=torch.float32),
+            target_viewpoints=torch.as_tensor(targets, dtype=torch.float32),
+            mesh_path=record.mesh_path,
+        )
+
+    def _view_sets(self, epoch: int, selected: list[_Selected]) -> list[np.ndarray]:
+        if self.pool is None:
+            return [s.viewpoints for s in selected]
+        for s in selected:
+            self.pool.add(s.category, s.object_id, torch.as_tensor(s.viewpoints))
+        return [
+            self.pool.sample(s.category, s.object_id, generator=_generator(self.seed, epoch, s.index, 1)).numpy()
+            for s in selected
+        ]
+
+    def _synthesize(
+        self, trainer: L.Trainer, epoch: int, selected: list[_Selected], view_sets: list[np.ndarray]
+    ) -> list[np.ndarray]:
+        dm = trainer.datamodule
+        records = dm.split_records("train")
+        rank, world = trainer.global_rank, trainer.world_size
+        mine = list(range(rank, len(selected), world))
+        images: dict[int, np.ndarray] = {}
+        bar = tqdm(
+            total=len(mine),
+            desc=f"VTR: synthesizing views (epoch {epoch})",
+            disable=not self.progress_bar or rank != 0,
+            leave=False,
+            dynamic_ncols=True,
+        )
+        for start in range(0, len(mine), self.batch_size):
+            chunk = mine[start : start + self.batch_size]
+            requests = [self._request(dm, records[selected[j].index], torch.as_tensor(view_sets[j])) for j in chunk]
+            for j, out in zip(chunk, self.synthesizer.synthesize(requests)):
+                images[j] = np.asarray(out)
+            bar.update(len(chunk))
+        bar.close()
+        merged: dict[int, np.ndarray] = {}
+        for part in _all_gather(trainer, images):
+            merged.update(part)
+        return [merged[j] for j in range(len(selected))]
+
+    def _run(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int) -> None:
+        dm = trainer.datamodule
+        num_train = len(dm.split_records("train"))
+        if num_train == 0:
+            rank_zero_warn("ErrorGuidedViewAugmentation: the datamodule has no training objects; nothing generated.")
+            return
+        chosen = self._choose_objects(num_train, epoch)
+        mine = chosen[trainer.global_rank :: trainer.world_size]
+        selected = [s for part in _all_gather(trainer, self._select(trainer, pl_module, epoch, mine)) for s in part]
+        selected.sort(key=lambda s: s.index)
+        view_sets = self._view_sets(epoch, selected)
+        images = self._synthesize(trainer, epoch, selected, view_sets)
+        samples = [
+            GeneratedSample(s.category, s.object_id, img, np.asarray(vs, dtype=np.float64), epoch)
+            for s, vs, img in zip(selected, view_sets, images)
+        ]
+        if self.max_samples is not None:
+            dm.max_generated = self.max_samples
+        dm.add_samples(samples)
+        trainer.strategy.barrier("ErrorGuidedViewAugmentation.add_samples")
+        self.last_epoch = epoch
+        record = {
+            "epoch": epoch,
+            "objects": [f"{s.category}/{s.object_id}" for s in selected],
+            "selected": [s.viewpoints.round(3).tolist() for s in selected],
+            "view_sets": [np.asarray(v).round(3).tolist() for v in view_sets],
+            "mean_error": float(np.mean([s.error for s in selected])) if selected else 0.0,
+        }
+        self.history.append({k: record[k] for k in ("epoch", "mean_error")} | {"samples": len(samples)})
+        self._log(trainer, record, samples)
+
+    # ------------------------------------------------------------------ logging
+    def _log(self, trainer: L.Trainer, record: dict[str, Any], samples: list[GeneratedSample]) -> None:
+        if not trainer.is_global_zero:
+            return
+        total = len(trainer.datamodule.generated_samples)
+        metrics = {
+            "vtr/samples_generated": float(len(samples)),
+            "vtr/samples_total": float(total),
+            "vtr/mean_error": record["mean_error"],
+        }
+        rank_zero_info(
+            f"VTR epoch {record['epoch']}: {len(samples)} samples generated ({total} in total), "
+            f"mean voxel error of searched objects {record['mean_error']:.4f}"
+        )
+        for logger in trainer.loggers:
+            logger.log_metrics(metrics, step=trainer.global_step)
+            experiment = getattr(logger, "experiment", None)
+            if self.log_images and samples and hasattr(experiment, "add_image"):
+                experiment.add_image("vtr/new_views", _grid(samples[:8]), trainer.global_step, dataformats="HWC")
+        log_dir = trainer.log_dir or trainer.default_root_dir
+        if log_dir:
+            out = Path(log_dir) / "vtr_selection"
+            out.mkdir(parents=True, exist_ok=True)
+            (out / f"epoch_{record['epoch']:04d}.json").write_text(json.dumps(record, indent=1))
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "version": _STATE_VERSION,
+            "seed": self.seed,
+            "last_epoch": self.last_epoch,
+            "history": list(self.history),
+            "pool": self.pool.state_dict() if self.pool is not None else None,
+            "selector": self.selector.state_dict(),
+        }
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if state_dict.get("version", 1) > _STATE_VERSION:
+            raise ValueError(
+                f"The checkpoint's ErrorGuidedViewAugmentation state has version {state_dict['version']}; "
+                f"this lightning_vtr reads versions <= {_STATE_VERSION}. Upgrade lightning_vtr."
+            )
+        if state_dict.get("seed", self.seed) != self.seed:
+            rank_zero_warn(
+                f"Resuming ErrorGuidedViewAugmentation with seed={self.seed}, but the checkpoint used "
+                f"seed={state_dict['seed']}: later generations will differ from the original run."
+            )
+        self.last_epoch = int(state_dict.get("last_epoch", -1))
+        self.history = list(state_dict.get("history", []))
+        if self.pool is not None and state_dict.get("pool") is not None:
+            self.pool.load_state_dict(state_dict["pool"])
+        if state_dict.get("selector"):
+            self.selector.load_state_dict(state_dict["selector"])
+
+
+def _grid(samples: list[GeneratedSample]) -> np.ndarray:
+    """Rows = samples, columns = views, composited on white: ``(rows*H, cols*W, 3)`` uint8."""
+    rows = []
+    width = max(s.images.shape[0] for s in samples)
+    for s in samples:
+        rgba = s.images.astype(np.float32) / 255.0
+        rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+        pad = width - rgb.shape[0]
+        if pad:
+            rgb = np.concatenate([rgb, np.ones((pad, *rgb.shape[1:]), np.float32)])
+        rows.append(np.concatenate(list(rgb), axis=1))
+    return (np.concatenate(rows, axis=0) * 255).astype(np.uint8)

@@ -1,0 +1,303 @@
+"""``VTRDataModule``: the ShapeNet-VTR protocol (train on Aligned, test on all three view sets) as a
+mutable LightningDataModule that accepts generated samples between epochs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import ConcatDataset, DataLoader
+
+from lightning_vtr.data.binvox import read_binvox
+from lightning_vtr.data.dataset import (
+    GeneratedDataset,
+    GeneratedSample,
+    ImageTransform,
+    VTRDataset,
+    dump_index,
+    load_rgba,
+    write_generated_sample,
+)
+from lightning_vtr.data.format import ObjectRecord
+
+__all__ = ["VIEW_SETS", "VTRDataModule"]
+
+VIEW_SETS = ("aligned", "hemispherical", "spherical")
+_STATE_VERSION = 1
+
+
+class VTRDataModule(L.LightningDataModule):
+    """Serves a ShapeNet-VTR dataset: Aligned/train for training, Aligned/val for validation, and the
+    test split of every view set as named test dataloaders (in ``test_view_sets`` order).
+
+    Generated view sets enter through :meth:`add_samples`; they are written to ``generated_dir`` and
+    appear from the next ``train_dataloader()`` call on (use ``reload_dataloaders_every_n_epochs=1``).
+    The list of generated samples is part of :meth:`state_dict`, so a resumed run sees exactly the
+    samples it had.
+
+    Args:
+        root: a directory written by ``lightning-vtr build-dataset``. ``None`` builds (once, cached) and
+            uses the embedded procedural dataset, with ``embedded`` as build options.
+        shapenet_rendering: instead of ``root``, a dict ``{"rendering_root", "voxel_root", "split_file"}``
+            for the 3D-R2N2 / Pix2Vox layout (one view set, served as "aligned").
+        n_views: images per sample.
+        image_size: side of the model input in pixels.
+        background: RGB compositing background.
+        normalize: ``"imagenet"`` or ``None``.
+        batch_size: per-process batch size.
+        num_workers: dataloader workers.
+        test_view_sets: view sets served by ``test_dataloader`` (one loader each, in this order).
+        categories: restrict to these categories (``None``: all).
+        generated_dir: where generated samples are written (default ``<trainer log dir>/vtr_generated``).
+        max_generated: keep at most this many generated samples (oldest dropped first); ``None``: all.
+        seed: fixes evaluation view choices.
+        embedded: build options for the embedded dataset (see ``lightning_vtr.data.builder.build_dataset``).
+
+    Example:
+        >>> dm = VTRDataModule(n_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
+        >>> trainer.fit(model, datamodule=dm)  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        root: str | None = None,
+        *,
+        shapenet_rendering: dict[str, str] | None = None,
+        n_views: int = 3,
+        image_size: int = 224,
+        background: tuple[int, int, int] = (255, 255, 255),
+        normalize: str | None = "imagenet",
+        batch_size: int = 32,
+        num_workers: int = 0,
+        test_view_sets: Sequence[str] = VIEW_SETS,
+        categories: Sequence[str] | None = None,
+        generated_dir: str | None = None,
+        max_generated: int | None = None,
+        seed: int = 0,
+        embedded: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        if root is not None and shapenet_rendering is not None:
+            raise ValueError("Pass either `root` (a ShapeNet-VTR directory) or `shapenet_rendering`, not both")
+        if n_views < 1:
+            raise ValueError(f"`n_views` must be >= 1, got {n_views}")
+        if batch_size < 1:
+            raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
+        if max_generated is not None and max_generated < 0:
+            raise ValueError(f"`max_generated` must be >= 0 or None, got {max_generated}")
+        if shapenet_rendering is not None:
+            missing = {"rendering_root", "voxel_root", "split_file"} - set(shapenet_rendering)
+            if missing:
+                raise ValueError(f"`shapenet_rendering` is missing keys {sorted(missing)}")
+        self.save_hyperparameters()
+        self.root = Path(root).expanduser() if root is not None else None
+        self.shapenet_rendering = shapenet_rendering
+        self.n_views = int(n_views)
+        self.transform = ImageTransform(image_size, background, normalize)
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.test_view_sets = tuple(test_view_sets)
+        self.categories = tuple(categories) if categories is not None else None
+        self.max_generated = max_generated
+        self.seed = int(seed)
+        self.embedded = dict(embedded or {})
+        self._generated_dir_arg = generated_dir
+        self._records: list[ObjectRecord] | None = None
+        self._generated: list[dict] = []
+        self._next_sample_id = 0
+
+    # ------------------------------------------------------------------ data discovery
+    def prepare_data(self) -> None:
+        if self.root is None and self.shapenet_rendering is None:
+            from lightning_vtr.data.builder import ensure_embedded_dataset
+
+            ensure_embedded_dataset(**self.embedded)
+
+    def _resolve_root(self) -> Path | None:
+        if self.root is None and self.shapenet_rendering is None:
+            from lightning_vtr.data.builder import ensure_embedded_dataset
+
+            self.root = Path(ensure_embedded_dataset(**self.embedded))
+        return self.root
+
+    def setup(self, stage: str | None = None) -> None:
+        if self._records is not None:
+            return
+        root = self._resolve_root()
+        if self.shapenet_rendering is not None:
+            from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
+
+            records = list(ShapeNetRenderingSource(**self.shapenet_rendering))
+        else:
+            from lightning_vtr.data.format import scan_dataset
+
+            records = scan_dataset(root)
+        if self.categories is not None:
+            unknown = set(self.categories) - {r.category for r in records}
+            if unknown:
+                raise ValueError(f"`categories` names {sorted(unknown)}, which the dataset at {root} does not have")
+            records = [r for r in records if r.category in self.categories]
+        # A fixed order makes every process (and every resumed run) index objects identically.
+        self._records = sorted(records, key=lambda r: (r.category, r.object_id))
+        self._voxel_paths = {(r.category, r.object_id): r.voxel_path for r in self._records}
+        self._by_key = {(r.category, r.object_id): r for r in self._records}
+
+    @property
+    def records(self) -> list[ObjectRecord]:
+        if self._records is None:
+            self.setup()
+        return self._records  # type: ignore[return-value]
+
+    def split_records(self, split: str) -> list[ObjectRecord]:
+        """Objects of one split (``"train"``, ``"val"`` or ``"test"``), in a fixed order."""
+        return [r for r in self.records if r.split == split]
+
+    @property
+    def category_names(self) -> list[str]:
+        return sorted({r.category for r in self.records})
+
+    @property
+    def generated_dir(self) -> Path:
+        """Where generated samples live: ``generated_dir`` if given, else ``<trainer log dir>/vtr_generated``
+        (so a shared, read-only dataset is never written to). Fixed once first resolved."""
+        if self._generated_dir_arg is None:
+            if self.trainer is not None:
+                base = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+            else:
+                base = Path(self.root if self.root is not None else ".") / "generated"
+            self._generated_dir_arg = str(base / "vtr_generated")
+        return Path(self._generated_dir_arg).expanduser()
+
+    # ------------------------------------------------------------------ loaders
+    def _dataset(self, split: str, view_set: str, train: bool) -> VTRDataset:
+        return VTRDataset(
+            self.split_records(split), view_set, n_views=self.n_views, transform=self.transform, train=train, seed=self.seed
+        )
+
+    def _epoch(self) -> int:
+        return int(self.trainer.current_epoch) if self.trainer is not None else 0
+
+    def train_dataset(self) -> torch.utils.data.Dataset:
+        base = self._dataset("train", "aligned", train=True)
+        base.epoch = self._epoch()
+        if not self._generated:
+            return base
+        generated = GeneratedDataset(self._generated, self.generated_dir, self._voxel_paths, self.transform)
+        return ConcatDataset([base, generated])
+
+    def _loader(self, dataset: torch.utils.data.Dataset, shuffle: bool) -> DataLoader:
+        # Shuffling seeded by (seed, epoch): the data order is a function of the epoch alone, so a run
+        # resumed from a checkpoint trains on exactly the batches an uninterrupted run would.
+        generator = torch.Generator().manual_seed(self.seed * 100_003 + self._epoch()) if shuffle else None
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            generator=generator,
+            num_workers=self.num_workers,
+            persistent_workers=False,
+            drop_last=False,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_dataset(), shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("val", "aligned", train=False), shuffle=False)
+
+    def test_dataloader(self) -> list[DataLoader]:
+        return [self._loader(self._dataset("test", name, train=False), shuffle=False) for name in self.test_view_sets]
+
+    # ------------------------------------------------------------------ what the callback uses
+    def object_views(
+        self, record: ObjectRecord, view_set: str = "aligned", indices: Sequence[int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(images (V, H, W, 4) uint8, viewpoints (V, 2) degrees)`` of one object's view set."""
+        paths, viewpoints = record.views[view_set]
+        idx = list(range(len(paths))) if indices is None else list(indices)
+        return np.stack([load_rgba(paths[i]) for i in idx]), np.asarray(viewpoints, dtype=np.float64)[idx]
+
+    def object_voxels(self, record: ObjectRecord) -> torch.Tensor:
+        """``(R, R, R)`` float occupancy of one object."""
+        return torch.from_numpy(read_binvox(record.voxel_path).astype(np.float32))
+
+    def eval_item(self, record: ObjectRecord, view_set: str = "aligned", seed: int = 0) -> dict:
+        """A model-ready item of ``n_views`` views of ``record`` chosen as a fixed function of ``seed``."""
+        paths, _ = record.views[view_set]
+        rng = np.random.default_rng([self.seed, seed, int(hashlib.sha1(record.object_id.encode()).hexdigest()[:8], 16)])
+        chosen = rng.choice(len(paths), size=self.n_views, replace=False)
+        images, viewpoints = self.object_views(record, view_set, chosen)
+        return {
+            "images": self.transform(images),
+            "voxels": self.object_voxels(record),
+            "viewpoints": torch.as_tensor(viewpoints, dtype=torch.float32),
+            "category": record.category,
+            "object_id": record.object_id,
+        }
+
+    def record(self, category: str, object_id: str) -> ObjectRecord:
+        return self._by_key[(category, object_id)]
+
+    @property
+    def generated_samples(self) -> list[dict]:
+        """Index entries of the generated samples currently served (a copy)."""
+        return [dict(e) for e in self._generated]
+
+    def add_samples(self, samples: Sequence[GeneratedSample]) -> list[dict]:
+        """Persist generated view sets and serve them from the next ``train_dataloader()`` on.
+
+        Every process must call this with the same samples in the same order (the callback does), so
+        every rank's dataset stays identical. Writing is atomic and idempotent per file, so processes
+        sharing a filesystem may write the same sample concurrently.
+
+        Returns the new index entries.
+        """
+        self.setup()
+        directory = self.generated_dir
+        new = []
+        for sample in samples:
+            if (sample.category, sample.object_id) not in self._voxel_paths:
+                raise KeyError(f"add_samples: unknown object {sample.category}/{sample.object_id}")
+            sample_dir = directory / f"{self._next_sample_id:07d}_{sample.category}_{sample.object_id}"
+            entry = write_generated_sample(sample, sample_dir)
+            entry["id"] = self._next_sample_id
+            self._next_sample_id += 1
+            new.append(entry)
+        self._generated.extend(new)
+        if self.max_generated is not None and len(self._generated) > self.max_generated:
+            self._generated = self._generated[len(self._generated) - self.max_generated :]
+        if new and (self.trainer is None or self.trainer.is_global_zero):
+            dump_index(self._generated, directory / "index.json")
+        return new
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "version": _STATE_VERSION,
+            "generated": [dict(e) for e in self._generated],
+            "next_sample_id": self._next_sample_id,
+            "generated_dir": str(self.generated_dir) if self._generated else None,
+        }
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        version = state_dict.get("version", 1)
+        if version > _STATE_VERSION:
+            raise ValueError(
+                f"This checkpoint's VTRDataModule state has version {version}; this lightning_vtr reads <= {_STATE_VERSION}"
+            )
+        self._generated = [dict(e) for e in state_dict.get("generated", [])]
+        self._next_sample_id = int(state_dict.get("next_sample_id", len(self._generated)))
+        if state_dict.get("generated_dir") and self._generated_dir_arg is None:
+            self._generated_dir_arg = state_dict["generated_dir"]
+        missing = [e["dir"] for e in self._generated if not (self.generated_dir / e["dir"]).is_dir()]
+        if missing:
+            raise FileNotFoundError(
+                f"The checkpoint lists {len(missing)} generated samples missing under {self.generated_dir} "
+                f"(first: {missing[0]}). Pass `generated_dir` pointing at the run's generated samples."
+            )

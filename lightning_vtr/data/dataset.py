@@ -1,0 +1,248 @@
+"""Torch datasets over a ShapeNet-VTR directory and over generated (synthesized) view sets.
+
+Both yield the batch dictionaries described in :mod:`lightning_vtr.protocol`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from lightning_vtr.data.binvox import read_binvox
+from lightning_vtr.data.format import ObjectRecord
+
+__all__ = [
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
+    "GeneratedDataset",
+    "GeneratedSample",
+    "ImageTransform",
+    "VTRDataset",
+    "load_rgba",
+    "write_generated_sample",
+]
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def load_rgba(path: str | Path) -> np.ndarray:
+    """Read an image file as ``(H, W, 4)`` uint8 RGBA (opaque alpha for RGB files)."""
+    try:
+        with Image.open(path) as img:
+            return np.asarray(img.convert("RGBA"))
+    except (OSError, ValueError) as err:
+        raise OSError(f"Cannot read image {path}: {err}") from err
+
+
+class ImageTransform:
+    """RGBA uint8 images -> model input: composite on a background, resize, scale, normalise.
+
+    Args:
+        image_size: output side ``S`` in pixels.
+        background: RGB background (0-255) composited under transparent pixels.
+        normalize: ``"imagenet"`` (mean/std of ImageNet, what the ResNet/DeiT backbones expect) or ``None`` ([0, 1]).
+
+    Call it on ``(H, W, 4)`` or ``(T, H, W, 4)`` uint8 arrays; returns ``(3, S, S)`` or ``(T, 3, S, S)`` float32.
+    """
+
+    def __init__(
+        self,
+        image_size: int = 224,
+        background: Sequence[int] = (255, 255, 255),
+        normalize: str | None = "imagenet",
+    ) -> None:
+        if image_size <= 0:
+            raise ValueError(f"`image_size` must be positive, got {image_size}")
+        if len(background) != 3 or not all(0 <= int(c) <= 255 for c in background):
+            raise ValueError(f"`background` must be three ints in [0, 255], got {background!r}")
+        if normalize not in ("imagenet", None):
+            raise ValueError(f"`normalize` must be 'imagenet' or None, got {normalize!r}")
+        self.image_size = int(image_size)
+        self.background = tuple(int(c) for c in background)
+        self.normalize = normalize
+
+    def __call__(self, rgba: np.ndarray) -> Tensor:
+        single = rgba.ndim == 3
+        batch = rgba[None] if single else rgba
+        if batch.ndim != 4 or batch.shape[-1] not in (3, 4):
+            raise ValueError(f"Expected (H, W, 4) or (T, H, W, 4) RGBA images, got shape {rgba.shape}")
+        x = torch.from_numpy(np.ascontiguousarray(batch)).float() / 255.0  # (T, H, W, C)
+        if x.shape[-1] == 4:
+            alpha = x[..., 3:]
+            bg = torch.tensor(self.background, dtype=x.dtype) / 255.0
+            x = x[..., :3] * alpha + bg * (1.0 - alpha)
+        x = x.permute(0, 3, 1, 2)
+        if x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
+            x = F.interpolate(x, size=(self.image_size, self.image_size), mode="bilinear", antialias=True, align_corners=False)
+            x = x.clamp(0.0, 1.0)
+        if self.normalize == "imagenet":
+            x = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        return x[0] if single else x
+
+
+class VTRDataset(Dataset):
+    """One item per object: ``n_views`` images of one view set, the object's voxels and viewpoints.
+
+    In training the views are drawn afresh every epoch as a function of ``(seed, epoch, index)`` (set
+    ``epoch`` before building each epoch's loader), so a resumed run and every DDP rank draw exactly the
+    views an uninterrupted single-process run would; in evaluation (``train=False``) they are a fixed
+    function of ``(seed, index)``.
+    """
+
+    def __init__(
+        self,
+        records: Sequence[ObjectRecord],
+        view_set: str,
+        *,
+        n_views: int = 3,
+        transform: ImageTransform | None = None,
+        train: bool = False,
+        seed: int = 0,
+    ) -> None:
+        self.records = list(records)
+        self.view_set = view_set
+        self.n_views = int(n_views)
+        self.transform = transform or ImageTransform()
+        self.train = train
+        self.seed = int(seed)
+        self.epoch = 0
+        for rec in self.records:
+            if view_set not in rec.views:
+                raise KeyError(
+                    f"Object {rec.category}/{rec.object_id} has no view set {view_set!r}; "
+                    f"available: {sorted(rec.views)}"
+                )
+            available = len(rec.views[view_set][0])
+            if available < self.n_views:
+                raise ValueError(
+                    f"Object {rec.category}/{rec.object_id} has {available} views in {view_set!r}, "
+                    f"fewer than n_views={self.n_views}"
+                )
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def view_indices(self, index: int) -> np.ndarray:
+        """Which of the object's views item ``index`` uses (fixed in evaluation)."""
+        available = len(self.records[index].views[self.view_set][0])
+        key = [self.seed, self.epoch, index] if self.train else [self.seed, index]
+        rng = np.random.default_rng(key)
+        return rng.choice(available, size=self.n_views, replace=False)
+
+    def __getitem__(self, index: int) -> dict:
+        rec = self.records[index]
+        paths, viewpoints = rec.views[self.view_set]
+        chosen = self.view_indices(index)
+        images = np.stack([load_rgba(paths[i]) for i in chosen])
+        return {
+            "images": self.transform(images),
+            "voxels": torch.from_numpy(read_binvox(rec.voxel_path).astype(np.float32)),
+            "viewpoints": torch.as_tensor(np.asarray(viewpoints)[chosen], dtype=torch.float32),
+            "category": rec.category,
+            "object_id": rec.object_id,
+            "view_set": self.view_set,
+        }
+
+
+@dataclass
+class GeneratedSample:
+    """A synthesized view set for one training object.
+
+    Attributes:
+        category: the object's category.
+        object_id: the object's id.
+        images: ``(T, H, W, 4)`` uint8 RGBA.
+        viewpoints: ``(T, 2)`` (yaw, pitch) in degrees.
+        epoch: the training epoch whose end produced it.
+    """
+
+    category: str
+    object_id: str
+    images: np.ndarray
+    viewpoints: np.ndarray
+    epoch: int = 0
+
+
+def _atomic_save_png(image: np.ndarray, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    Image.fromarray(image).save(tmp, format="PNG")
+    os.replace(tmp, path)
+
+
+def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
+    """Write one sample's images (atomically, idempotently) into ``directory``; return its index entry."""
+    directory.mkdir(parents=True, exist_ok=True)
+    images = np.asarray(sample.images)
+    viewpoints = np.asarray(sample.viewpoints, dtype=np.float64)
+    if images.ndim != 4 or images.shape[-1] != 4 or images.dtype != np.uint8:
+        raise ValueError(
+            f"Generated sample {sample.category}/{sample.object_id}: images must be (T, H, W, 4) uint8, "
+            f"got {images.shape} {images.dtype}"
+        )
+    if viewpoints.shape != (images.shape[0], 2):
+        raise ValueError(
+            f"Generated sample {sample.category}/{sample.object_id}: viewpoints must be ({images.shape[0]}, 2), "
+            f"got {viewpoints.shape}"
+        )
+    names = [f"{i:02d}.png" for i in range(images.shape[0])]
+    for image, name in zip(images, names):
+        _atomic_save_png(image, directory / name)
+    return {
+        "category": sample.category,
+        "object_id": sample.object_id,
+        "epoch": int(sample.epoch),
+        "dir": directory.name,
+        "images": names,
+        "viewpoints": viewpoints.tolist(),
+    }
+
+
+class GeneratedDataset(Dataset):
+    """Serves generated view sets (index entries from :func:`write_generated_sample`) as training items."""
+
+    def __init__(
+        self,
+        entries: Sequence[dict],
+        directory: Path,
+        voxel_paths: dict[tuple[str, str], Path],
+        transform: ImageTransform | None = None,
+    ) -> None:
+        self.entries = list(entries)
+        self.directory = Path(directory)
+        self.voxel_paths = voxel_paths
+        self.transform = transform or ImageTransform()
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, index: int) -> dict:
+        entry = self.entries[index]
+        sample_dir = self.directory / entry["dir"]
+        images = np.stack([load_rgba(sample_dir / name) for name in entry["images"]])
+        voxel_path = self.voxel_paths[(entry["category"], entry["object_id"])]
+        return {
+            "images": self.transform(images),
+            "voxels": torch.from_numpy(read_binvox(voxel_path).astype(np.float32)),
+            "viewpoints": torch.as_tensor(entry["viewpoints"], dtype=torch.float32),
+            "category": entry["category"],
+            "object_id": entry["object_id"],
+            "view_set": "generated",
+        }
+
+
+def dump_index(entries: Sequence[dict], path: Path) -> None:
+    """Write the generated-sample index as JSON, atomically (for inspection; the checkpoint is authoritative)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(list(entries), indent=1))
+    os.replace(tmp, path)
