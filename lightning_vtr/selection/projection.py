@@ -1,0 +1,340 @@
+"""The paper's error-guided view selection as batched tensor functions.
+
+``error_volume`` -> ``error_projection`` -> ``view_scores`` -> ``select_views``: the reconstruction error
+``E = |V - V_gt|`` is projected orthographically onto every candidate viewpoint (first hit from the camera
+side), each view is scored by the error it sees, and the final viewpoints are sampled around the
+best-scoring angle bins. All angles are in **degrees**; the camera, pixel layout, depth and bins come from
+:mod:`lightning_vtr.geometry`. No Python loops run over voxels, pixels or views, and every function works
+on CPU and CUDA tensors alike.
+
+How the first hit is defined: each voxel is represented by its **centre**. A centre projects to the
+pixel that contains it (``floor`` of the continuous ``(row, col)`` of
+:func:`~lightning_vtr.geometry.orthographic_pixel_coords`); among the voxels above ``eps`` that land in a
+pixel, the one with the smallest depth (nearest the camera) wins and the pixel takes its value. Depths
+within ``1e-9`` world units of each other count as equal and such ties go to the lowest flat voxel index
+``i * R^2 + j * R + k``, so the result does not depend on float rounding or scatter order. With the
+default ``image_size = R`` and ``half_extent = sqrt(3) / 2`` a pixel is ``sqrt(3) ~ 1.7`` voxels wide, so
+no voxel leaves the image from any viewpoint and a solid's projection has no holes.
+
+The implementation is sparse: for a given grid size and set of viewpoints it precomputes (once, cached)
+the pixel of every voxel centre and its depth rank in every view. Per call it takes only the voxels above
+``eps``, looks up their pixels and ranks for all views at once, keeps the smallest rank per
+``(object, view, pixel)`` with one ``scatter_reduce(..., "amin")`` (the rank encodes depth and the tie
+break in one sortable integer), and gathers the value of the winning voxel.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from lightning_vtr.geometry import (
+    angle_bins,
+    candidate_viewpoints,
+    check_bin_interval,
+    check_viewpoints,
+    orthographic_pixel_coords,
+    sample_gaussian_viewpoints,
+    voxel_centers,
+    wrap_yaw,
+)
+
+__all__ = ["error_projection", "error_volume", "nearest_bins", "select_views", "view_scores"]
+
+#: Depths closer than this (world units; a voxel is 1/R >= 1e-3 wide) are treated as equal.
+_DEPTH_TIE_TOLERANCE = 1e-9
+#: How many projection tables (one per grid size, viewpoint set, image size, device) are kept.
+_TABLE_CACHE_SIZE = 6
+#: Views processed together while building a table, to bound the float64 temporaries.
+_TABLE_VIEW_CHUNK = 16
+
+_table_cache: OrderedDict[tuple, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
+
+
+# --------------------------------------------------------------------------------------------- checks
+def _check_volumes(volumes: Tensor, name: str) -> Tensor:
+    if not isinstance(volumes, Tensor):
+        raise TypeError(f"`{name}` must be a torch.Tensor, got {type(volumes).__name__}")
+    if volumes.ndim != 4 or not (volumes.shape[1] == volumes.shape[2] == volumes.shape[3]):
+        raise ValueError(f"`{name}` must have shape (B, R, R, R), got {tuple(volumes.shape)}")
+    if volumes.shape[1] == 0:
+        raise ValueError(f"`{name}` is an empty grid (R = 0), got shape {tuple(volumes.shape)}")
+    if volumes.dtype == torch.bool:
+        return volumes.to(torch.get_default_dtype())
+    if not volumes.is_floating_point():
+        raise TypeError(f"`{name}` must be a floating-point (or bool) tensor, got dtype {volumes.dtype}")
+    return volumes
+
+
+def _check_pair(predicted: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    if not isinstance(predicted, Tensor) or not isinstance(target, Tensor):
+        raise TypeError(
+            f"`predicted` and `target` must be torch.Tensors, got {type(predicted).__name__} and {type(target).__name__}"
+        )
+    if predicted.shape != target.shape:
+        raise ValueError(
+            f"`predicted` and `target` must have the same shape (B, R, R, R), got predicted "
+            f"{tuple(predicted.shape)} and target {tuple(target.shape)}"
+        )
+    return _check_volumes(predicted, "predicted"), _check_volumes(target, "target")
+
+
+# --------------------------------------------------------------------------------------- error volume
+def error_volume(
+    predicted: Tensor,
+    target: Tensor,
+    *,
+    threshold: float = 0.4,
+    mode: Literal["binary", "soft"] = "binary",
+    mask: Literal[None, "gt"] = None,
+) -> Tensor:
+    """Reconstruction error ``E = |V - V_gt|`` of a batch of voxel grids.
+
+    Args:
+        predicted: ``(B, R, R, R)`` occupancy probabilities in ``[0, 1]``.
+        target: ``(B, R, R, R)`` ground-truth occupancy in ``{0, 1}`` (binarised at 0.5).
+        threshold: ``mode="binary"`` binarises the prediction as ``predicted >= threshold`` (the IoU
+            convention), so ``E`` is in ``{0, 1}`` (the paper's definition, threshold 0.4).
+        mode: ``"binary"`` (paper) or ``"soft"`` (``|predicted - target|`` of the continuous output).
+        mask: ``"gt"`` keeps only errors inside ground-truth voxels (missed parts, as the released code
+            does); ``None`` keeps every error.
+
+    Returns:
+        ``(B, R, R, R)`` error in ``[0, 1]``, dtype of ``predicted``.
+
+    Raises:
+        ValueError: on mismatched shapes (naming both) or a bad ``threshold`` / ``mode`` / ``mask``.
+    """
+    predicted, target = _check_pair(predicted, target)
+    if not 0.0 <= threshold <= 1.0:
+        raise ValueError(f"`threshold` must lie in [0, 1], got {threshold!r}")
+    if mode not in ("binary", "soft"):
+        raise ValueError(f"`mode` must be 'binary' or 'soft', got {mode!r}")
+    if mask not in (None, "gt"):
+        raise ValueError(f"`mask` must be None or 'gt', got {mask!r}")
+    gt = target >= 0.5
+    if mode == "binary":
+        err = ((predicted >= threshold) != gt).to(predicted.dtype)
+    else:
+        err = (predicted - target.to(predicted.dtype)).abs()
+    if mask == "gt":
+        err = err * gt.to(err.dtype)
+    return err
+
+
+# ---------------------------------------------------------------------------------- projection table
+def _projection_table(
+    resolution: int, viewpoints: Tensor, image_size: int, half_extent: float, device: torch.device
+) -> tuple[Tensor, Tensor]:
+    """Per voxel and view: the scatter slot and the sortable first-hit key (cached per argument set).
+
+    Returns:
+        ``slot (N, V)`` int32: ``v * (S^2 + 1) + row * S + col``, or ``v * (S^2 + 1) + S^2`` (a discarded
+        slot) for a centre outside the image; ``key (N, V)``: ``rank * N + n`` where ``rank`` is the
+        position of voxel ``n`` in the view's (depth, flat index) order, so the smallest key in a pixel
+        is its first hit and ``key % N`` names the voxel. int32 when ``N^2`` fits, else int64.
+        Voxel-major so a call gathers whole contiguous rows for its nonzero voxels.
+    """
+    vp64 = viewpoints.detach().to("cpu", torch.float64)
+    key = (resolution, image_size, float(half_extent), str(device), tuple(vp64.flatten().tolist()))
+    if key in _table_cache:
+        _table_cache.move_to_end(key)
+        return _table_cache[key]
+
+    n_vox = resolution**3
+    pixels = image_size * image_size
+    key_dtype = torch.int32 if n_vox * n_vox <= torch.iinfo(torch.int32).max else torch.int64
+    centres = voxel_centers(resolution, torch.float64).reshape(-1, 3)
+    flat = torch.arange(n_vox, dtype=torch.int64)
+    slots, keys = [], []
+    for start in range(0, vp64.shape[0], _TABLE_VIEW_CHUNK):
+        chunk = vp64[start : start + _TABLE_VIEW_CHUNK]
+        coords = orthographic_pixel_coords(centres, chunk, image_size, half_extent)  # (v, N, 3)
+        row, col, depth = coords.unbind(-1)
+        row_i, col_i = torch.floor(row).long(), torch.floor(col).long()
+        inside = (row_i >= 0) & (row_i < image_size) & (col_i >= 0) & (col_i < image_size)
+        view_ids = torch.arange(start, start + chunk.shape[0], dtype=torch.int64)[:, None]
+        slot = torch.where(inside, row_i * image_size + col_i, torch.full_like(row_i, pixels))
+        slots.append(slot + view_ids * (pixels + 1))
+        # Group depths that differ only by rounding, then order by (group, flat index): one integer
+        # rank that makes "nearest, then lowest index" a single amin.
+        sorted_depth, by_depth = torch.sort(depth, dim=-1, stable=True)
+        step = torch.diff(sorted_depth, dim=-1) > _DEPTH_TIE_TOLERANCE
+        group_sorted = torch.cat([torch.zeros_like(step[:, :1], dtype=torch.int64), step.long().cumsum(-1)], -1)
+        group = torch.empty_like(group_sorted).scatter_(-1, by_depth, group_sorted)
+        order = torch.argsort(group * n_vox + flat, dim=-1)
+        rank = torch.empty_like(order).scatter_(-1, order, flat.expand_as(order).contiguous())
+        keys.append(rank * n_vox + flat)
+    table = (
+        torch.cat(slots).t().contiguous().to(device=device, dtype=torch.int32),
+        torch.cat(keys).t().contiguous().to(device=device, dtype=key_dtype),
+    )
+    _table_cache[key] = table
+    while len(_table_cache) > _TABLE_CACHE_SIZE:
+        _table_cache.popitem(last=False)
+    return table
+
+
+def _first_hit_keys(volumes: Tensor, viewpoints: Tensor, image_size: int, half_extent: float, eps: float) -> Tensor:
+    """Smallest first-hit key per ``(object, view, pixel)``: ``(B, V, S^2)``, ``iinfo.max`` where nothing is hit."""
+    batch, resolution = volumes.shape[0], volumes.shape[1]
+    n_views, pixels = viewpoints.shape[0], image_size * image_size
+    slot, key = _projection_table(resolution, viewpoints, image_size, half_extent, volumes.device)
+    obj, vox = torch.nonzero(volumes.reshape(batch, -1) > eps, as_tuple=True)  # (M,), (M,)
+    index = slot.index_select(0, vox).long()  # (M, V)
+    index += (obj * (n_views * (pixels + 1)))[:, None]
+    sentinel = torch.iinfo(key.dtype).max
+    best = torch.full((batch * n_views * (pixels + 1),), sentinel, dtype=key.dtype, device=volumes.device)
+    best.scatter_reduce_(0, index.view(-1), key.index_select(0, vox).view(-1), reduce="amin", include_self=True)
+    return best.view(batch, n_views, pixels + 1)[..., :pixels]
+
+
+def error_projection(
+    volumes: Tensor,
+    viewpoints: Tensor,
+    *,
+    image_size: int | None = None,
+    half_extent: float = math.sqrt(3) / 2,
+    eps: float = 0.0,
+) -> Tensor:
+    """Orthographic first-hit projection of voxel grids onto a set of viewpoints.
+
+    Each pixel takes the value of the first voxel with value ``> eps`` along its ray from the camera
+    side, and 0 where nothing is hit (see the module docstring for the exact definition of the hit and
+    its tie break). Pixel layout and depth are those of
+    :func:`~lightning_vtr.geometry.orthographic_pixel_coords`; voxel centres those of
+    :func:`~lightning_vtr.geometry.voxel_centers`.
+
+    Args:
+        volumes: ``(B, R, R, R)`` or ``(R, R, R)`` values (e.g. an error volume), any float dtype.
+        viewpoints: ``(V, 2)`` (yaw, pitch) in degrees.
+        image_size: ``S``, the side of the square projection in pixels; defaults to ``R``.
+        half_extent: half the side of the square the image covers, in world units. The default
+            ``sqrt(3) / 2`` keeps the whole unit cube in view from any direction.
+        eps: voxels with value ``<= eps`` are transparent.
+
+    Returns:
+        ``(B, V, S, S)`` (``(V, S, S)`` for an unbatched input), dtype and device of ``volumes``.
+        ``B = 0`` gives an empty result.
+
+    Raises:
+        ValueError: for a non-cubic or empty grid, no viewpoints, or a bad ``image_size`` / ``half_extent``.
+    """
+    unbatched = isinstance(volumes, Tensor) and volumes.ndim == 3
+    vol = _check_volumes(volumes[None] if unbatched else volumes, "volumes")
+    vp = check_viewpoints(viewpoints)
+    if vp.ndim != 2 or vp.shape[0] == 0:
+        raise ValueError(f"`viewpoints` must have shape (V, 2) with V >= 1, got {tuple(vp.shape)}")
+    batch, resolution = vol.shape[0], vol.shape[1]
+    size = resolution if image_size is None else image_size
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"`image_size` must be a positive int, got {image_size!r}")
+    if not (half_extent > 0 and math.isfinite(half_extent)):
+        raise ValueError(f"`half_extent` must be a positive finite number (world units), got {half_extent!r}")
+    out_shape = (batch, vp.shape[0], size, size)
+    if batch == 0:
+        result = vol.new_zeros(out_shape)
+        return result[0] if unbatched else result
+
+    best = _first_hit_keys(vol, vp, size, half_extent, eps)
+    hit = best != torch.iinfo(best.dtype).max
+    flat = vol.reshape(batch, -1)
+    n_vox = flat.shape[1]
+    if bool((flat == 1).logical_or_(flat <= eps).all()):
+        # A {0, 1} volume (the paper's binary error): every hit has value 1, no gather needed.
+        result = hit.to(vol.dtype)
+    else:
+        winner = torch.where(hit, best % n_vox, torch.zeros_like(best)).view(batch, -1).long()
+        result = torch.gather(flat, 1, winner).view_as(best).masked_fill_(~hit, 0)
+    result = result.view(out_shape)
+    return result[0] if unbatched else result
+
+
+# -------------------------------------------------------------------------------------------- scores
+def view_scores(projections: Tensor, *, reduction: Literal["sum", "mean"] = "sum") -> Tensor:
+    """Score every view by the error it sees.
+
+    Args:
+        projections: ``(B, V, S, S)`` maps from :func:`error_projection`.
+        reduction: ``"sum"`` of the map (the paper) or ``"mean"`` over hit (non-zero) pixels, which is 0
+            for a map with no hit (the released code divides by zero there).
+
+    Returns:
+        ``(B, V)`` scores, dtype of ``projections``.
+    """
+    if not isinstance(projections, Tensor) or projections.ndim != 4:
+        shape = tuple(projections.shape) if isinstance(projections, Tensor) else type(projections).__name__
+        raise ValueError(f"`projections` must have shape (B, V, S, S), got {shape}")
+    if reduction not in ("sum", "mean"):
+        raise ValueError(f"`reduction` must be 'sum' or 'mean', got {reduction!r}")
+    total = projections.sum(dim=(-2, -1))
+    if reduction == "sum":
+        return total
+    hits = (projections != 0).sum(dim=(-2, -1))
+    return torch.where(hits > 0, total / hits.clamp_min(1).to(total.dtype), torch.zeros_like(total))
+
+
+# ------------------------------------------------------------------------------------------ sampling
+def nearest_bins(viewpoints: Tensor, k: int = 30) -> Tensor:
+    """Index in :func:`~lightning_vtr.geometry.candidate_viewpoints` order of the bin holding each viewpoint.
+
+    Args:
+        viewpoints: ``(..., 2)`` (yaw, pitch) in degrees.
+        k: bin interval in degrees (must divide 180).
+
+    Returns:
+        ``(...)`` int64 flat bin indices ``i_pitch * (360 / K) + i_yaw``; the bin whose centre is nearest in
+        each angle (yaw compared modulo 360), i.e. the bin containing the viewpoint.
+    """
+    k = check_bin_interval(k)
+    vp = check_viewpoints(viewpoints).to(torch.float64)
+    yaw_c, pitch_c = (c.to(vp.device, torch.float64) for c in angle_bins(k))
+    i_yaw = wrap_yaw(vp[..., 0, None] - yaw_c).abs().argmin(-1)
+    i_pitch = (vp[..., 1, None] - pitch_c).abs().argmin(-1)
+    return i_pitch * yaw_c.numel() + i_yaw
+
+
+def select_views(
+    scores: Tensor,
+    k: int = 30,
+    n: int = 3,
+    *,
+    generator: torch.Generator | None = None,
+    sigma: float | None = None,
+) -> Tensor:
+    """Sample ``n`` viewpoints per object around its ``n`` best-scoring candidate bins.
+
+    The ``n`` highest scores are kept (equal scores go to the lower candidate index, so the choice is
+    deterministic); each final viewpoint is drawn from ``N(bin centre, sigma)`` independently in yaw and
+    pitch, then yaw is wrapped into ``[-180, 180)`` and pitch clamped into ``[-90, 90]``. Objects whose
+    scores are all zero are not special-cased here (see :class:`ErrorGuidedSelector` for the fallback).
+
+    Args:
+        scores: ``(B, V)`` with ``V = (180 / K) * (360 / K)`` in
+            :func:`~lightning_vtr.geometry.candidate_viewpoints` order.
+        k: bin interval ``K`` in degrees (must divide 180).
+        n: views per object, ``1 <= n <= V``.
+        generator: CPU generator for the Gaussian noise.
+        sigma: standard deviation in degrees; ``None`` means the paper's ``K / 6``.
+
+    Returns:
+        ``(B, n, 2)`` (yaw, pitch) in degrees, best bin first, on the device of ``scores``.
+    """
+    k = check_bin_interval(k)
+    candidates = candidate_viewpoints(k)
+    if not isinstance(scores, Tensor) or scores.ndim != 2 or scores.shape[1] != candidates.shape[0]:
+        shape = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
+        raise ValueError(f"`scores` must have shape (B, {candidates.shape[0]}) for K={k}, got {shape}")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= candidates.shape[0]:
+        raise ValueError(f"`n` must be an int in [1, {candidates.shape[0]}] for K={k}, got {n!r}")
+    sigma = k / 6.0 if sigma is None else sigma
+    if not (sigma >= 0 and math.isfinite(sigma)):
+        raise ValueError(f"`sigma` must be a finite number >= 0 (degrees), got {sigma!r}")
+    best = torch.argsort(-scores.detach().to(torch.float64), dim=1, stable=True)[:, :n]  # (B, n)
+    centres = candidates.to(scores.device, torch.float64)[best]  # (B, n, 2)
+    out_dtype = scores.dtype if scores.is_floating_point() else torch.get_default_dtype()
+    return sample_gaussian_viewpoints(centres, sigma, generator=generator).to(out_dtype)
