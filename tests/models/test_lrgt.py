@@ -1,0 +1,222 @@
+"""Tests for LRGT: grouping attention, token merger, decoder, Dice loss and the LightningModule."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from lightning_vtr.models.lrgt import (
+    LRGT_PRESETS,
+    LongRangeGroupingAttention,
+    LRGTNetwork,
+    SimilarTokenMerger,
+    dice_loss,
+)
+
+DIM, HEADS, GRID, STRIDE, PREFIX = 8, 2, 4, 2, 2
+
+
+def _attend(attn: LongRangeGroupingAttention, tokens: torch.Tensor) -> torch.Tensor:
+    """Plain multi-head softmax attention of a token list ``(T, D)`` with attn's qkv, before proj."""
+    q, k, v = attn.qkv(tokens).split(DIM, dim=-1)
+    hd = DIM // HEADS
+    out = []
+    for h in range(HEADS):
+        sl = slice(h * hd, (h + 1) * hd)
+        out.append(torch.softmax(q[:, sl] @ k[:, sl].T / math.sqrt(hd), dim=-1) @ v[:, sl])
+    return torch.cat(out, dim=-1)
+
+
+def _reference_grouping_attention(attn: LongRangeGroupingAttention, x: torch.Tensor, views: int) -> torch.Tensor:
+    """Loop over groups: gather each group's tokens across views, attend, scatter back."""
+    bv, t, _ = x.shape
+    out = torch.zeros_like(x)
+    for b in range(bv // views):
+        rows = range(b * views, (b + 1) * views)
+        # prefix tokens of all views form one group
+        members = [(r, p) for r in rows for p in range(PREFIX)]
+        res = _attend(attn, torch.stack([x[r, p] for r, p in members]))
+        for n, (r, p) in enumerate(members):
+            out[r, p] = res[n]
+        for a in range(STRIDE):
+            for c in range(STRIDE):
+                members = [
+                    (r, PREFIX + row * GRID + col)
+                    for r in rows
+                    for row in range(GRID)
+                    for col in range(GRID)
+                    if row % STRIDE == a and col % STRIDE == c
+                ]
+                res = _attend(attn, torch.stack([x[r, p] for r, p in members]))
+                for n, (r, p) in enumerate(members):
+                    out[r, p] = res[n]
+    # signature: depthwise 3x3 (zero padded) conv of each view's value map, written as a neighbour sum
+    values = attn.qkv(x)[..., 2 * DIM :]
+    w, bias = attn.signature.weight[:, 0], attn.signature.bias
+    for r in range(bv):
+        for row in range(GRID):
+            for col in range(GRID):
+                s = bias.clone()
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = row + dr, col + dc
+                        if 0 <= rr < GRID and 0 <= cc < GRID:
+                            s = s + w[:, dr + 1, dc + 1] * values[r, PREFIX + rr * GRID + cc]
+                out[r, PREFIX + row * GRID + col] += s
+    return attn.proj(out)
+
+
+def _random_grouping_attention() -> LongRangeGroupingAttention:
+    torch.manual_seed(0)
+    attn = LongRangeGroupingAttention(DIM, HEADS, GRID, STRIDE)
+    # The signature starts at zero; make it matter for the comparison.
+    torch.nn.init.normal_(attn.signature.weight)
+    torch.nn.init.normal_(attn.signature.bias)
+    return attn
+
+
+@pytest.mark.parametrize("views", [1, 3])
+def test_grouping_attention_equals_loop_reference(views):
+    attn = _random_grouping_attention()
+    x = torch.randn(2 * views, PREFIX + GRID * GRID, DIM)
+    with torch.no_grad():
+        expected = _reference_grouping_attention(attn, x, views)
+        actual = attn(x, num_views=views)
+    assert torch.allclose(actual, expected, atol=1e-5)
+
+
+def test_grouping_attention_one_view_is_per_view_and_views_do_mix_otherwise():
+    attn = _random_grouping_attention()
+    x = torch.randn(3, PREFIX + GRID * GRID, DIM)
+    with torch.no_grad():
+        alone = torch.cat([attn(x[i : i + 1], num_views=1) for i in range(3)])
+        # Three separate 1-view samples equal one batch of three 1-view samples ...
+        assert torch.allclose(attn(x, num_views=1), alone, atol=1e-6)
+        # ... but not one 3-view sample, whose groups span the views.
+        assert not torch.allclose(attn(x, num_views=3), alone, atol=1e-3)
+        # Group (0, 0) of the single view is patches (0,0), (0,2), (2,0), (2,2): perturbing patch
+        # (1, 1) (group (1, 1)) changes no group-(0,0) output except via the signature of its
+        # 3x3 neighbours (0,0), (0,2), (2,0), (2,2) -- so zero the signature to isolate groups.
+        torch.nn.init.zeros_(attn.signature.weight)
+        y = x[:1].clone()
+        y[0, PREFIX + 1 * GRID + 1] += 5.0
+        before, after = attn(x[:1], 1), attn(y, 1)
+        group00 = [PREFIX + r * GRID + c for r in (0, 2) for c in (0, 2)]
+        assert torch.allclose(before[0, group00], after[0, group00], atol=1e-6)
+        assert not torch.allclose(before[0, PREFIX + 1 * GRID + 3], after[0, PREFIX + 1 * GRID + 3], atol=1e-3)
+
+
+def test_grouping_attention_rejects_bad_stride_and_shapes():
+    with pytest.raises(ValueError, match="group_stride"):
+        LongRangeGroupingAttention(DIM, HEADS, grid_size=14, group_stride=4)
+    attn = LongRangeGroupingAttention(DIM, HEADS, GRID, STRIDE)
+    with pytest.raises(ValueError, match=r"B \* 2"):
+        attn(torch.randn(3, PREFIX + GRID * GRID, DIM), num_views=2)
+
+
+def test_paper_grouping_layout_is_49_groups_of_4_tokens_per_view():
+    attn = LongRangeGroupingAttention(12, 2, grid_size=14, group_stride=7)
+    index = torch.arange(14 * 14, dtype=torch.float32).reshape(1, 1, 196, 1).expand(2, 1, 196, 1)
+    groups = attn._to_groups(index, num_views=2)  # one sample, two views
+    assert groups.shape == (49, 1, 8, 1)
+    # group (a, b) = (1, 3): patches (1, 3), (1, 10), (8, 3), (8, 10) of each view.
+    members = groups[1 * 7 + 3, 0, :, 0].tolist()
+    assert members == [1 * 14 + 3, 1 * 14 + 10, 8 * 14 + 3, 8 * 14 + 10] * 2
+    assert torch.equal(attn._from_groups(groups, num_views=2), index)
+
+
+def test_merger_is_identity_when_not_more_tokens_than_clusters():
+    merger = SimilarTokenMerger(DIM, num_tokens=10, k=3)
+    x = torch.randn(2, 7, DIM)
+    assert torch.allclose(merger(x), x, atol=1e-6)
+
+
+def test_merger_averages_clusters_with_learned_weights():
+    torch.manual_seed(0)
+    merger = SimilarTokenMerger(4, num_tokens=2, k=2)
+    a = torch.tensor([1.0, 0, 0, 0]) * 10
+    b = torch.tensor([0, 1.0, 0, 0]) * 10
+    noise = 0.1 * torch.randn(6, 4)
+    x = torch.stack([a, b, a, b, a, b]) + noise  # two tight clusters, interleaved
+    merged = merger(x[None])[0]
+    w = torch.exp(merger.score(x).squeeze(-1))
+    expected = [(w[i, None] * x[i]).sum(0) / w[i].sum() for i in ([0, 2, 4], [1, 3, 5])]
+    # Cluster order follows the centre score; compare as a set.
+    got = sorted(merged.tolist(), key=lambda r: r[0])
+    want = sorted(torch.stack(expected).tolist(), key=lambda r: r[0])
+    assert torch.allclose(torch.tensor(got), torch.tensor(want), atol=1e-5)
+    centres, assign = merger.cluster(x[None])
+    assert set(assign[0, [0, 2, 4]].tolist()) != set(assign[0, [1, 3, 5]].tolist())
+    assert len(set(assign[0, [0, 2, 4]].tolist())) == 1
+
+
+def test_merger_density_peaks_follow_dpc_knn_reference():
+    torch.manual_seed(1)
+    x = torch.randn(1, 12, 3)
+    merger = SimilarTokenMerger(3, num_tokens=4, k=3)
+    centres, assign = merger.cluster(x)
+    # Reference: straightforward per-token loops.
+    pts = x[0]
+    d = [[float(torch.linalg.norm(pts[i] - pts[j])) / math.sqrt(3) for j in range(12)] for i in range(12)]
+    rho = [math.exp(-sum(v * v for v in sorted(d[i][:i] + d[i][i + 1 :])[:3]) / 3) for i in range(12)]
+    delta = []
+    for i in range(12):
+        denser = [d[i][j] for j in range(12) if rho[j] > rho[i] or (rho[j] == rho[i] and j < i)]
+        delta.append(min(denser) if denser else max(d[i]))
+    score = [rho[i] * delta[i] for i in range(12)]
+    want = sorted(range(12), key=lambda i: -score[i])[:4]
+    assert sorted(centres[0].tolist()) == sorted(want)
+    for i in range(12):
+        nearest = min(range(4), key=lambda m: d[i][centres[0, m]])
+        assert assign[0, i].item() == nearest
+
+
+def test_dice_loss_hand_computed():
+    p = torch.tensor([[0.5, 1.0, 0.0, 0.25]])
+    t = torch.tensor([[1.0, 1.0, 0.0, 0.0]])
+    # sum(pt) = 1.5, sum(p^2) = 0.25 + 1 + 0.0625 = 1.3125, sum(t^2) = 2
+    assert dice_loss(p, t).item() == pytest.approx(1 - 2.5 / 4.3125)
+    with pytest.raises(ValueError, match="same shape"):
+        dice_loss(p, t[:, :3])
+
+
+def test_network_shapes_any_number_of_views_and_view_order_invariance():
+    torch.manual_seed(0)
+    net = LRGTNetwork(**LRGT_PRESETS["tiny"]).eval()
+    for block in net.grouping_blocks:
+        torch.nn.init.normal_(net.encoder.blocks[block].attn.signature.weight, std=0.1)
+    images = torch.randn(2, 3, 3, 64, 64)
+    with torch.no_grad():
+        out = net(images)
+        assert out.shape == (2, 32, 32, 32)
+        assert ((out > 0) & (out < 1)).all()
+        for v in (1, 5):
+            assert net(torch.randn(2, v, 3, 64, 64)).shape == (2, 32, 32, 32)
+        permuted = net(images[:, [2, 0, 1]])
+    assert torch.allclose(out, permuted, atol=1e-5)
+    with pytest.raises(ValueError, match=r"\(B, V, 3, H, W\)"):
+        net(torch.randn(2, 3, 64, 64))
+
+
+def test_paper_preset_parameter_count_and_output_shape():
+    with torch.device("meta"):
+        net = LRGTNetwork(**LRGT_PRESETS["paper"])
+        out = net(torch.empty(2, 3, 3, 224, 224))
+    count = sum(p.numel() for p in net.parameters())
+    assert abs(count - 130e6) / 130e6 < 0.03, count
+    assert out.shape == (2, 32, 32, 32)
+    assert net.encoder.grid_size == 14
+
+
+def test_pretrained_encoder_loads_into_grouping_blocks():
+    preset = LRGT_PRESETS["tiny"]
+    net = LRGTNetwork(**preset)
+    own = {k: v for k, v in net.encoder.state_dict().items() if ".signature." not in k}
+    state = {k: torch.randn_like(v) for k, v in own.items()} | {"head.weight": torch.zeros(3, 64)}
+    net.load_pretrained_encoder(state)
+    block = preset["grouping_blocks"][0]
+    assert torch.equal(net.encoder.blocks[block].attn.qkv.weight, state[f"blocks.{block}.attn.qkv.weight"])
+    assert not net.encoder.blocks[block].attn.signature.weight.any()
