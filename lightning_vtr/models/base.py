@@ -1,0 +1,249 @@
+"""The shared LightningModule base of the package's reconstruction models.
+
+:class:`VoxelReconstructionModule` satisfies :class:`~lightning_vtr.protocol.ReconstructionModel`
+and holds everything that does not depend on the network: input checks, the training /
+validation / test steps, and IoU / F-score logging per view set and per category. A model
+(the package's Pix2Vox++ and LRGT, or a user's own) subclasses it and implements three things:
+
+* ``reconstruct(images)``: the network. ``images`` ``(B, V, 3, H, W)`` (already checked) ->
+  a dict of outputs that holds at least ``"voxels"``, the final occupancy probabilities
+  ``(B, R, R, R)``; other entries (coarse volumes, logits, ...) are for the loss.
+* ``loss(outputs, target)``: scalar training loss from that dict and the ground truth
+  ``(B, R, R, R)``.
+* ``configure_optimizers()``: as in any LightningModule.
+
+and calls ``super().__init__(image_size=..., num_views=..., voxel_resolution=...)``. The base then
+provides ``forward(images) -> dict`` (checks, then ``reconstruct``), ``predict_voxels(images) ->
+(B, R, R, R)``, and the steps. Logged keys:
+
+* ``train/loss``; ``val/loss``, ``val/iou@0.2`` ... ``val/iou@0.5``, ``val/fscore`` (validation
+  loaders hold Aligned views);
+* ``test/<set>/iou@<t>``, ``test/<set>/fscore``, ``test/<set>/<category>/iou@<t>``,
+  ``test/<set>/<category>/fscore`` for each view set ``<set>`` in ``aligned`` / ``hemispherical``
+  / ``spherical`` present in the test batches (``batch["view_set"]``, one name per sample;
+  a batch without it counts as Aligned).
+
+Metrics are accumulated in torchmetrics objects (one per view set, created up front) and synced
+across processes at epoch end. Per-category results need the category vocabulary to be identical
+on every process under DDP: pass ``categories`` or let :meth:`setup` take ``datamodule.categories``.
+:func:`lightning_vtr.reporting.results_from_test_output` turns ``trainer.test(...)`` output into
+the nested dict the paper-style table takes.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from lightning_vtr.metrics import VoxelFScore, VoxelIoU
+from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
+
+__all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
+
+#: The test view sets of ShapeNet-VTR, in the order of the paper's tables.
+VIEW_SETS: tuple[str, ...] = ("aligned", "hemispherical", "spherical")
+
+
+def _threshold_key(threshold: float) -> str:
+    return f"iou@{threshold:g}"
+
+
+class VoxelReconstructionModule(L.LightningModule, abc.ABC):
+    """Base LightningModule for multi-view voxel reconstruction (see the module docstring).
+
+    Args:
+        image_size: square input size ``H = W`` in pixels.
+        num_views: number of input views per sample during training (any number works at test time).
+        voxel_resolution: ``R`` of the ``(B, R, R, R)`` output.
+        iou_thresholds: thresholds of the logged IoU.
+        fscore_threshold: binarisation threshold of the F-score.
+        fscore_points: points sampled per surface for the F-score.
+        validation_fscore: also compute the F-score during validation (costs ~10-50 ms per object).
+        categories: category vocabulary for per-category test metrics; ``None`` takes
+            ``trainer.datamodule.categories`` at setup when it exists, else grows as names are seen
+            (fine on one process; under DDP give it explicitly).
+
+    Raises:
+        ValueError: if a size is not a positive integer.
+    """
+
+    def __init__(
+        self,
+        image_size: int,
+        num_views: int,
+        voxel_resolution: int = 32,
+        *,
+        iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
+        fscore_threshold: float = 0.4,
+        fscore_points: int = 8192,
+        validation_fscore: bool = True,
+        categories: Sequence[str] | None = None,
+    ) -> None:
+        super().__init__()
+        for name, value in (("image_size", image_size), ("num_views", num_views), ("voxel_resolution", voxel_resolution)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"`{name}` must be a positive integer, got {value!r}")
+        self.image_size = image_size
+        self.num_views = num_views
+        self.voxel_resolution = voxel_resolution
+        self.iou_thresholds = tuple(float(t) for t in iou_thresholds)
+        self.validation_fscore = validation_fscore
+        cats = list(categories) if categories is not None else None
+
+        def metrics() -> nn.ModuleDict:
+            return nn.ModuleDict(
+                {
+                    "iou": VoxelIoU(self.iou_thresholds, categories=cats),
+                    "fscore": VoxelFScore(threshold=fscore_threshold, num_points=fscore_points, categories=cats),
+                }
+            )
+
+        self.val_metrics = metrics()
+        self.test_metrics = nn.ModuleDict({name: metrics() for name in VIEW_SETS})
+
+    # ------------------------------------------------------------------ what subclasses implement
+    @abc.abstractmethod
+    def reconstruct(self, images: Tensor) -> dict[str, Tensor]:
+        """Run the network on checked images ``(B, V, 3, H, W)``.
+
+        Returns:
+            a dict holding at least ``"voxels"``: occupancy probabilities ``(B, R, R, R)``.
+        """
+
+    @abc.abstractmethod
+    def loss(self, outputs: dict[str, Tensor], target: Tensor) -> Tensor:
+        """Scalar training loss from :meth:`reconstruct`'s outputs and ground truth ``(B, R, R, R)``."""
+
+    # ------------------------------------------------------------------ protocol and checks
+    def check_images(self, images: Tensor) -> None:
+        """Raise ``ValueError`` naming expected vs actual if ``images`` is not valid model input."""
+        if not isinstance(images, Tensor):
+            raise TypeError(f"`images` must be a torch.Tensor of shape (B, V, 3, H, W), got {type(images).__name__}")
+        s = self.image_size
+        if images.ndim != 5:
+            raise ValueError(
+                f"`images` must have shape (B, V, 3, {s}, {s}) (5 dimensions), got {tuple(images.shape)}"
+            )
+        b, v, c, h, w = images.shape
+        if c != 3:
+            raise ValueError(f"`images` must have 3 (RGB) channels in dim 2, got {c} (shape {tuple(images.shape)})")
+        if (h, w) != (s, s):
+            raise ValueError(f"`images` must be {s}x{s} pixels (H, W), got {h}x{w} (shape {tuple(images.shape)})")
+        if b < 1 or v < 1:
+            raise ValueError(f"`images` needs at least one sample and one view, got shape {tuple(images.shape)}")
+        if not images.is_floating_point():
+            raise ValueError(f"`images` must be a floating-point tensor, got {images.dtype}")
+        if not torch.isfinite(images).all():
+            raise ValueError("`images` contains NaN or infinite values; expected finite normalised pixels")
+
+    def check_voxels(self, voxels: Tensor, batch_size: int | None = None) -> None:
+        """Raise ``ValueError`` if ``voxels`` is not a ``(B, R, R, R)`` target for this model."""
+        r = self.voxel_resolution
+        expected = (batch_size if batch_size is not None else "B", r, r, r)
+        if not isinstance(voxels, Tensor) or voxels.ndim != 4 or tuple(voxels.shape[1:]) != (r, r, r) or (
+            batch_size is not None and voxels.shape[0] != batch_size
+        ):
+            actual = tuple(voxels.shape) if isinstance(voxels, Tensor) else type(voxels).__name__
+            raise ValueError(f"`voxels` must have shape {expected}, got {actual}")
+
+    def forward(self, images: Tensor) -> dict[str, Tensor]:
+        """Check ``images`` ``(B, V, 3, H, W)`` and return :meth:`reconstruct`'s outputs."""
+        self.check_images(images)
+        return self.reconstruct(images)
+
+    def predict_voxels(self, images: Tensor) -> Tensor:
+        """Occupancy probabilities ``(B, R, R, R)`` for images ``(B, V, 3, H, W)``.
+
+        Gradients are tracked as usual: wrap the call in ``torch.no_grad()`` for inference.
+        """
+        return self(images)["voxels"]
+
+    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
+        return self.predict_voxels(batch["images"])
+
+    # ------------------------------------------------------------------ steps
+    def setup(self, stage: str) -> None:
+        if self.trainer is None:
+            return
+        categories = getattr(self.trainer.datamodule, "categories", None) if self.trainer.datamodule else None
+        if categories:
+            for group in (self.val_metrics, *self.test_metrics.values()):
+                for metric in group.values():
+                    metric.add_categories(list(categories))
+
+    def _batch(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
+        images, voxels = batch["images"], batch["voxels"]
+        self.check_voxels(voxels, batch_size=images.shape[0] if isinstance(images, Tensor) else None)
+        return images, voxels
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        images, voxels = self._batch(batch)
+        loss = self.loss(self(images), voxels)
+        self.log("train/loss", loss, prog_bar=True, batch_size=images.shape[0])
+        return loss
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> None:
+        images, voxels = self._batch(batch)
+        outputs = self(images)
+        self.log("val/loss", self.loss(outputs, voxels), batch_size=images.shape[0], add_dataloader_idx=False)
+        probs = outputs["voxels"].detach()
+        self.val_metrics["iou"].update(probs, voxels, batch.get("category"))
+        if self.validation_fscore:
+            self.val_metrics["fscore"].update(probs, voxels, batch.get("category"))
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics(self.val_metrics, "val", per_category=False)
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> None:
+        images, voxels = self._batch(batch)
+        probs = self(images)["voxels"].detach()
+        view_sets = batch.get("view_set") or ["aligned"] * images.shape[0]
+        if isinstance(view_sets, str) or len(view_sets) != images.shape[0]:
+            raise ValueError(f"batch['view_set'] must list one view-set name per sample ({images.shape[0]}), got {view_sets!r}")
+        categories = batch.get("category")
+        for name in dict.fromkeys(view_sets):
+            if name not in self.test_metrics:
+                raise ValueError(f"batch['view_set'] holds {name!r}; expected one of {VIEW_SETS}")
+            index = [i for i, s in enumerate(view_sets) if s == name]
+            sel = torch.tensor(index, device=probs.device)
+            cats = [categories[i] for i in index] if categories is not None else None
+            for metric in self.test_metrics[name].values():
+                metric.update(probs.index_select(0, sel), voxels.index_select(0, sel), cats)
+
+    def on_test_epoch_end(self) -> None:
+        for name, group in self.test_metrics.items():
+            self._log_metrics(group, f"test/{name}", per_category=True)
+
+    def _log_metrics(self, group: nn.ModuleDict, prefix: str, per_category: bool) -> None:
+        """Compute (synced), log and reset a group of IoU / F-score metrics; skip empty ones.
+
+        Every process computes every metric, updated or not, because computing is a collective
+        under DDP; a metric without objects on any process yields NaN and is not logged.
+        """
+        iou, fscore = group["iou"], group["fscore"]
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*compute.*before.*update.*")
+            values = self._flatten(iou.compute().reshape(-1), fscore.compute())
+            if per_category:
+                f_cat = fscore.compute_per_category()
+                for cat, iou_cat in iou.compute_per_category().items():
+                    for key, val in self._flatten(iou_cat.reshape(-1), f_cat.get(cat)).items():
+                        values[f"{cat}/{key}"] = val
+        for key, val in values.items():
+            if not math.isnan(val):
+                self.log(f"{prefix}/{key}", val, add_dataloader_idx=False)
+        iou.reset()
+        fscore.reset()
+
+    def _flatten(self, iou: Tensor, fscore: Tensor | None) -> dict[str, float]:
+        out = {_threshold_key(t): float(v) for t, v in zip(self.iou_thresholds, iou)}
+        if fscore is not None:
+            out["fscore"] = float(fscore)
+        return out
