@@ -1,0 +1,27 @@
+"""View selection: the paper's error-guided selector and viewpoint pool, and the comparison strategies."""
+
+from __future__ import annotations
+
+from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.error_guided import ErrorGuidedSelector
+from lightning_vtr.selection.nature import NatureSelector
+from lightning_vtr.selection.plots import plot_error_projections, plot_pool_distribution
+from lightning_vtr.selection.pool import ViewpointPool
+from lightning_vtr.selection.projection import error_projection, error_volume, nearest_bins, select_views, view_scores
+from lightning_vtr.selection.random_selector import RandomSelector
+
+__all__ = [
+    "ErrorGuidedSelector",
+    "NatureSelector",
+    "RandomSelector",
+    "SelectionContext",
+    "ViewSelector",
+    "ViewpointPool",
+    "error_projection",
+    "error_volume",
+    "nearest_bins",
+    "plot_error_projections",
+    "plot_pool_distribution",
+    "select_views",
+    "view_scores",
+]

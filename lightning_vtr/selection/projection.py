@@ -33,7 +33,6 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import (
-    angle_bins,
     candidate_viewpoints,
     check_bin_interval,
     check_viewpoints,
@@ -282,20 +281,23 @@ def view_scores(projections: Tensor, *, reduction: Literal["sum", "mean"] = "sum
 def nearest_bins(viewpoints: Tensor, k: int = 30) -> Tensor:
     """Index in :func:`~lightning_vtr.geometry.candidate_viewpoints` order of the bin holding each viewpoint.
 
+    Bins are the paper's intervals ``[-180 + (i - 1) K, -180 + i K)`` in yaw (after wrapping) and
+    ``[-90 + (i - 1) K, -90 + i K)`` in pitch, half-open so a boundary angle belongs to the bin above it;
+    pitch 90 belongs to the top bin.
+
     Args:
         viewpoints: ``(..., 2)`` (yaw, pitch) in degrees.
         k: bin interval in degrees (must divide 180).
 
     Returns:
-        ``(...)`` int64 flat bin indices ``i_pitch * (360 / K) + i_yaw``; the bin whose centre is nearest in
-        each angle (yaw compared modulo 360), i.e. the bin containing the viewpoint.
+        ``(...)`` int64 flat bin indices ``i_pitch * (360 / K) + i_yaw`` (0-based).
     """
     k = check_bin_interval(k)
     vp = check_viewpoints(viewpoints).to(torch.float64)
-    yaw_c, pitch_c = (c.to(vp.device, torch.float64) for c in angle_bins(k))
-    i_yaw = wrap_yaw(vp[..., 0, None] - yaw_c).abs().argmin(-1)
-    i_pitch = (vp[..., 1, None] - pitch_c).abs().argmin(-1)
-    return i_pitch * yaw_c.numel() + i_yaw
+    n_yaw, n_pitch = 360 // k, 180 // k
+    i_yaw = torch.floor((wrap_yaw(vp[..., 0]) + 180.0) / k).long().clamp(0, n_yaw - 1)
+    i_pitch = torch.floor((vp[..., 1].clamp(-90.0, 90.0) + 90.0) / k).long().clamp(0, n_pitch - 1)
+    return i_pitch * n_yaw + i_yaw
 
 
 def select_views(

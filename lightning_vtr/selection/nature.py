@@ -1,0 +1,104 @@
+"""The paper's "Nature" comparison strategy: views from an object's natural viewing band."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+from lightning_vtr.geometry import clamp_pitch, sample_uniform_viewpoints
+from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.projection import _check_pair
+from lightning_vtr.selection.random_selector import _check_num_views, _check_range
+
+__all__ = ["NatureSelector"]
+
+
+def _check_pitch(value: float, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not -90.0 <= value <= 90.0:
+        raise ValueError(f"`{name}` must be a pitch in [-90, 90] degrees, got {value!r}")
+    return float(value)
+
+
+class NatureSelector(ViewSelector):
+    """Viewpoints "from training objects' natural states" (e.g. cars seen from the side).
+
+    Objects in this package stand upright in a canonical pose, so their natural viewing band is the
+    horizon: pitch ``pitch`` (0 by default), yaw uniform in ``yaw_range``. ``pitch`` may be a mapping from
+    category to pitch for categories usually seen from above or below; categories missing from the
+    mapping use 0. ``pitch_jitter`` spreads the pitch uniformly over ``[pitch - jitter, pitch + jitter]``
+    (clamped to [-90, 90]). All angles in degrees; selections are trained on directly
+    (``uses_pool = False``).
+
+    Args:
+        num_views: viewpoints per object.
+        pitch: natural pitch, or ``{category: pitch}``.
+        pitch_jitter: half-width of the uniform pitch spread, ``>= 0``.
+        yaw_range: ``(low, high)`` yaw in degrees, within [-180, 180].
+
+    Raises:
+        ValueError: naming the argument and the bad value.
+
+    Example::
+
+        selector = NatureSelector(pitch={"lamp": 20.0}, pitch_jitter=5.0)
+        views = selector.select(pred, gt, ["lamp", "car"])  # (2, 3, 2)
+    """
+
+    uses_pool = False
+
+    def __init__(
+        self,
+        num_views: int = 3,
+        pitch: float | Mapping[str, float] = 0.0,
+        pitch_jitter: float = 0.0,
+        yaw_range: tuple[float, float] = (-180.0, 180.0),
+    ) -> None:
+        self.num_views = _check_num_views(num_views)
+        if isinstance(pitch, Mapping):
+            self.pitch: float | dict[str, float] = {
+                str(cat): _check_pitch(p, f"pitch[{cat!r}]") for cat, p in pitch.items()
+            }
+        else:
+            self.pitch = _check_pitch(pitch, "pitch")
+        if isinstance(pitch_jitter, bool) or not isinstance(pitch_jitter, (int, float)) or not 0 <= pitch_jitter <= 180:
+            raise ValueError(f"`pitch_jitter` must be a number in [0, 180] degrees, got {pitch_jitter!r}")
+        self.pitch_jitter = float(pitch_jitter)
+        self.yaw_range = _check_range(yaw_range, "yaw_range", -180.0, 180.0)
+
+    def pitch_for(self, category: str) -> float:
+        """The natural pitch (degrees) of ``category``."""
+        if isinstance(self.pitch, dict):
+            return self.pitch.get(category, 0.0)
+        return self.pitch
+
+    def select(
+        self,
+        predicted: Tensor,
+        target: Tensor,
+        categories: list[str],
+        generator: torch.Generator | None = None,
+        context: SelectionContext | None = None,
+    ) -> Tensor:
+        """Viewpoints ``(B, num_views, 2)`` in degrees; ``B = 0`` gives an empty result.
+
+        Random draws: all yaws and pitch jitters at once, ``(B * num_views, 2)`` uniforms from ``generator``.
+        """
+        predicted, _ = _check_pair(predicted, target)
+        batch = predicted.shape[0]
+        if len(categories) != batch:
+            raise ValueError(f"`categories` must have one entry per object: got {len(categories)} for a batch of {batch}")
+        # yaw uniform in the range; the pitch column of this draw is reused as the jitter's uniform
+        draw = sample_uniform_viewpoints(
+            batch * self.num_views, mode="angle", yaw_range=self.yaw_range, pitch_range=(-90.0, 90.0), generator=generator
+        ).view(batch, self.num_views, 2)
+        centre = torch.tensor([self.pitch_for(c) for c in categories], dtype=draw.dtype).view(batch, 1)
+        pitch = clamp_pitch(centre + self.pitch_jitter * draw[..., 1] / 90.0)
+        return torch.stack([draw[..., 0], pitch], dim=-1).to(predicted.device)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(num_views={self.num_views}, pitch={self.pitch!r}, "
+            f"pitch_jitter={self.pitch_jitter}, yaw_range={self.yaw_range})"
+        )

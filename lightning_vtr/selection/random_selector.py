@@ -1,0 +1,95 @@
+"""The paper's "Random" comparison strategy: viewpoints drawn uniformly, ignoring the reconstruction."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from lightning_vtr.geometry import sample_uniform_viewpoints
+from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.projection import _check_pair
+
+__all__ = ["RandomSelector"]
+
+
+def _check_range(value: tuple[float, float], name: str, low: float, high: float) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a pair (low, high) in degrees, got {value!r}") from None
+    if not (low <= lo <= hi <= high):
+        raise ValueError(f"`{name}` must satisfy {low} <= low <= high <= {high} (degrees), got {value!r}")
+    return lo, hi
+
+
+def _check_num_views(num_views: int) -> int:
+    if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
+        raise ValueError(f"`num_views` must be a positive int, got {num_views!r}")
+    return num_views
+
+
+class RandomSelector(ViewSelector):
+    """Uniformly random viewpoints ("standard data augmentation with random viewpoints" in the paper).
+
+    The paper's range is pitch in [-90, 90] and yaw in [-180, 180] (degrees). ``mode="angle"`` draws yaw
+    and pitch uniformly in their ranges (dense near the poles on the sphere); ``mode="area"`` is uniform
+    over the covered patch of the sphere. Predictions and targets are only checked, never used, and the
+    selections are trained on directly (``uses_pool = False``).
+
+    Args:
+        num_views: viewpoints per object.
+        mode: ``"angle"`` or ``"area"``.
+        yaw_range: ``(low, high)`` yaw in degrees, within [-180, 180].
+        pitch_range: ``(low, high)`` pitch in degrees, within [-90, 90].
+
+    Raises:
+        ValueError: naming the argument and the bad value.
+
+    Example::
+
+        views = RandomSelector(num_views=3).select(pred, gt, cats, generator=torch.Generator().manual_seed(0))
+    """
+
+    uses_pool = False
+
+    def __init__(
+        self,
+        num_views: int = 3,
+        mode: Literal["angle", "area"] = "angle",
+        yaw_range: tuple[float, float] = (-180.0, 180.0),
+        pitch_range: tuple[float, float] = (-90.0, 90.0),
+    ) -> None:
+        self.num_views = _check_num_views(num_views)
+        if mode not in ("angle", "area"):
+            raise ValueError(f"`mode` must be 'angle' or 'area', got {mode!r}")
+        self.mode = mode
+        self.yaw_range = _check_range(yaw_range, "yaw_range", -180.0, 180.0)
+        self.pitch_range = _check_range(pitch_range, "pitch_range", -90.0, 90.0)
+
+    def select(
+        self,
+        predicted: Tensor,
+        target: Tensor,
+        categories: list[str],
+        generator: torch.Generator | None = None,
+        context: SelectionContext | None = None,
+    ) -> Tensor:
+        """Viewpoints ``(B, num_views, 2)`` in degrees; ``B = 0`` gives an empty result."""
+        predicted, _ = _check_pair(predicted, target)
+        batch = predicted.shape[0]
+        views = sample_uniform_viewpoints(
+            batch * self.num_views,
+            mode=self.mode,
+            yaw_range=self.yaw_range,
+            pitch_range=self.pitch_range,
+            generator=generator,
+        )
+        return views.view(batch, self.num_views, 2).to(predicted.device)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(num_views={self.num_views}, mode={self.mode!r}, "
+            f"yaw_range={self.yaw_range}, pitch_range={self.pitch_range})"
+        )
