@@ -103,7 +103,7 @@ class VTRDataModule(L.LightningDataModule):
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.test_view_sets = tuple(test_view_sets)
-        self.categories = tuple(categories) if categories is not None else None
+        self._category_filter = tuple(categories) if categories is not None else None
         self.max_generated = max_generated
         self.seed = int(seed)
         self.embedded = dict(embedded or {})
@@ -138,11 +138,11 @@ class VTRDataModule(L.LightningDataModule):
             from lightning_vtr.data.format import scan_dataset
 
             records = scan_dataset(root)
-        if self.categories is not None:
-            unknown = set(self.categories) - {r.category for r in records}
+        if self._category_filter is not None:
+            unknown = set(self._category_filter) - {r.category for r in records}
             if unknown:
                 raise ValueError(f"`categories` names {sorted(unknown)}, which the dataset at {root} does not have")
-            records = [r for r in records if r.category in self.categories]
+            records = [r for r in records if r.category in self._category_filter]
         # A fixed order makes every process (and every resumed run) index objects identically.
         self._records = sorted(records, key=lambda r: (r.category, r.object_id))
         self._voxel_paths = {(r.category, r.object_id): r.voxel_path for r in self._records}
@@ -159,7 +159,8 @@ class VTRDataModule(L.LightningDataModule):
         return [r for r in self.records if r.split == split]
 
     @property
-    def category_names(self) -> list[str]:
+    def categories(self) -> list[str]:
+        """The dataset's category names, sorted (the vocabulary models use for per-category metrics)."""
         return sorted({r.category for r in self.records})
 
     @property

@@ -32,7 +32,7 @@ def _sample(dm, index=0, fill=0):
 
 def test_splits_follow_7_1_2_per_category(tiny_dataset):
     dm = _dm(tiny_dataset)
-    for cat in dm.category_names:
+    for cat in dm.categories:
         counts = [sum(r.category == cat for r in dm.split_records(s)) for s in ("train", "val", "test")]
         assert counts == [7, 1, 2]
     keys = [(r.category, r.object_id) for r in dm.records]

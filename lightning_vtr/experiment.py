@@ -1,0 +1,203 @@
+"""The paper's protocol as functions: pretrain on Aligned, fine-tune with a view strategy, test on all sets.
+
+Used by ``examples/*.py`` and ``lightning-vtr report``. Every run writes ``results.json`` into its own
+directory and is skipped when that file exists, so a killed experiment re-run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+
+from lightning_vtr.data.datamodule import VTRDataModule
+
+__all__ = ["ExperimentConfig", "MODEL_CLASSES", "evaluate", "make_model", "make_strategy", "run_strategy", "pretrain"]
+
+
+def _model_classes() -> dict[str, type]:
+    from lightning_vtr.models.lrgt import LRGT
+    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+    return {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
+
+
+MODEL_CLASSES = ("pix2vox", "lrgt")
+
+
+@dataclass
+class ExperimentConfig:
+    """One experiment's budget and settings.
+
+    Attributes:
+        model: ``"pix2vox"`` or ``"lrgt"``.
+        preset: the model preset (``"tiny"`` on a laptop, ``"paper"`` for the published configuration).
+        data: a ShapeNet-VTR directory; ``None`` uses the embedded procedural dataset.
+        pretrain_epochs: epochs on Aligned before any view strategy (the paper's pre-trained model).
+        finetune_epochs: epochs of fine-tuning, the same for every strategy (including none).
+        batch_size, num_workers, seed: as usual. ``image_size`` ``None`` takes the preset's.
+        fraction: share of training objects searched per epoch by the callback.
+        accelerator, devices, precision: passed to the Trainer.
+        out: where runs are written.
+    """
+
+    model: str = "pix2vox"
+    preset: str = "tiny"
+    data: str | None = None
+    pretrain_epochs: int = 12
+    finetune_epochs: int = 12
+    batch_size: int = 16
+    num_workers: int = 0
+    image_size: int | None = None
+    fraction: float = 0.05
+    seed: int = 0
+    accelerator: str = "auto"
+    devices: int | str = 1
+    precision: str = "32-true"
+    out: str = "runs/vtr"
+    embedded: dict[str, Any] = field(default_factory=dict)
+    model_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+def make_model(config: ExperimentConfig) -> L.LightningModule:
+    classes = _model_classes()
+    if config.model not in classes:
+        raise ValueError(f"`model` must be one of {sorted(classes)}, got {config.model!r}")
+    return classes[config.model](preset=config.preset, **config.model_kwargs)
+
+
+def make_datamodule(config: ExperimentConfig, model: L.LightningModule) -> VTRDataModule:
+    return VTRDataModule(
+        config.data,
+        n_views=model.num_views,
+        image_size=config.image_size or model.image_size,
+        batch_size=config.batch_size,
+        num_workers=config.num_workers,
+        seed=config.seed,
+        embedded=config.embedded,
+    )
+
+
+def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: list | None = None) -> L.Trainer:
+    return L.Trainer(
+        max_epochs=epochs,
+        accelerator=config.accelerator,
+        devices=config.devices,
+        precision=config.precision,
+        default_root_dir=str(run_dir),
+        callbacks=callbacks or [],
+        reload_dataloaders_every_n_epochs=1,
+        logger=L.pytorch.loggers.CSVLogger(str(run_dir), name="", version=""),
+        enable_checkpointing=True,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        deterministic=False,
+    )
+
+
+def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConfig, run_dir: Path) -> dict:
+    """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries)."""
+    from lightning_vtr.reporting import results_from_test_output
+
+    trainer = L.Trainer(
+        accelerator=config.accelerator,
+        devices=1,
+        default_root_dir=str(run_dir),
+        logger=False,
+        enable_model_summary=False,
+        enable_progress_bar=False,
+    )
+    return results_from_test_output(trainer.test(model, datamodule=dm, verbose=False))
+
+
+def pretrain(config: ExperimentConfig) -> Path:
+    """Train on Aligned for ``pretrain_epochs``; returns the checkpoint path (reused when it exists)."""
+    run_dir = Path(config.out) / "pretrain"
+    ckpt = run_dir / "pretrained.ckpt"
+    if ckpt.is_file():
+        return ckpt
+    L.seed_everything(config.seed, workers=True, verbose=False)
+    model = make_model(config)
+    dm = make_datamodule(config, model)
+    trainer = _trainer(config, run_dir, config.pretrain_epochs)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    trainer.callbacks.append(L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True))
+    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
+    tmp = ckpt.with_suffix(".tmp")
+    trainer.save_checkpoint(tmp, weights_only=True)
+    os.replace(tmp, ckpt)
+    return ckpt
+
+
+def make_strategy(name: str, config: ExperimentConfig, synthesizer: Any = None, **kwargs: Any) -> L.Callback | None:
+    """The callback for a view strategy name (``"none"`` -> ``None``)."""
+    from lightning_vtr.callback import ErrorGuidedViewAugmentation
+    from lightning_vtr.selection import ErrorGuidedSelector, NatureSelector, RandomSelector
+
+    selectors: dict[str, Callable[[], Any]] = {
+        "error_guided": lambda: ErrorGuidedSelector(**kwargs),
+        "random": lambda: RandomSelector(**kwargs),
+        "nature": lambda: NatureSelector(**kwargs),
+    }
+    try:
+        from lightning_vtr.selection import MVTNSelector, VIATSelector
+
+        selectors["viat"] = lambda: VIATSelector(**kwargs)
+        selectors["mvtn"] = lambda: MVTNSelector(**kwargs)
+    except ImportError:  # pragma: no cover - optional strategies
+        pass
+    if name == "none":
+        return None
+    if name not in selectors:
+        raise ValueError(f"Unknown view strategy {name!r}; choose from {['none', *sorted(selectors)]}")
+    return ErrorGuidedViewAugmentation(
+        selector=selectors[name](), synthesizer=synthesizer, fraction=config.fraction, seed=config.seed
+    )
+
+
+def run_strategy(
+    name: str,
+    config: ExperimentConfig,
+    pretrained: Path,
+    *,
+    run_name: str | None = None,
+    callback: L.Callback | None = None,
+    synthesizer: Any = None,
+) -> dict:
+    """Fine-tune the pretrained model with one view strategy and test it; cached in ``results.json``."""
+    run_dir = Path(config.out) / (run_name or name)
+    result_file = run_dir / "results.json"
+    if result_file.is_file():
+        return json.loads(result_file.read_text())
+    L.seed_everything(config.seed, workers=True, verbose=False)
+    model = make_model(config)
+    model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
+    dm = make_datamodule(config, model)
+    if callback is None:
+        callback = make_strategy(name, config, synthesizer)
+    checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
+    trainer = _trainer(config, run_dir, config.finetune_epochs, [c for c in (callback, checkpoints) if c is not None])
+    last = run_dir / "checkpoints" / "last.ckpt"
+    start = time.perf_counter()
+    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
+    train_seconds = time.perf_counter() - start
+    results = evaluate(model, dm, config, run_dir)
+    payload = {
+        "strategy": name,
+        "config": asdict(config),
+        "train_seconds": train_seconds,
+        "generated_samples": len(dm.generated_samples),
+        "results": results,
+    }
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tmp = result_file.with_suffix(".tmp")
+    tmp.write_text(json.dumps(payload, indent=1))
+    os.replace(tmp, result_file)
+    return payload
