@@ -7,7 +7,15 @@ from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 from lightning_vtr.selection.nature import NatureSelector
 from lightning_vtr.selection.plots import plot_error_projections, plot_pool_distribution
 from lightning_vtr.selection.pool import ViewpointPool
-from lightning_vtr.selection.projection import error_projection, error_volume, nearest_bins, select_views, view_scores
+from lightning_vtr.selection.projection import (
+    error_projection,
+    error_volume,
+    nearest_bins,
+    sample_around_bins,
+    select_views,
+    top_bins,
+    view_scores,
+)
 from lightning_vtr.selection.random_selector import RandomSelector
 
 __all__ = [
@@ -22,6 +30,8 @@ __all__ = [
     "nearest_bins",
     "plot_error_projections",
     "plot_pool_distribution",
+    "sample_around_bins",
     "select_views",
+    "top_bins",
     "view_scores",
 ]

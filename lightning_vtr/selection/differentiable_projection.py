@@ -54,8 +54,7 @@ def _ray_grid(viewpoints: Tensor, image_size: int, half_extent: float, num_sampl
     of :func:`~lightning_vtr.geometry.orthographic_pixel_coords`.
     """
     dtype, device = viewpoints.dtype, viewpoints.device
-    basis = camera_basis(viewpoints)  # (B, V, 3, 3): rows right, up, backward
-    right, up, forward = basis[..., 0, :], basis[..., 1, :], -basis[..., 2, :]
+    batch, num_views = viewpoints.shape[:2]
     pixel = 2.0 * half_extent / image_size
     coords = (torch.arange(image_size, dtype=dtype, device=device) + 0.5) * pixel
     cols = -half_extent + coords  # x grows with the column index
@@ -63,14 +62,14 @@ def _ray_grid(viewpoints: Tensor, image_size: int, half_extent: float, num_sampl
     # The depth range is the circumsphere's diameter so that every voxel of the cube is crossed.
     reach = DEFAULT_HALF_EXTENT
     depths = -reach + (torch.arange(num_samples, dtype=dtype, device=device) + 0.5) * (2.0 * reach / num_samples)
-    points = (
-        cols[None, None, None, None, :, None] * right[:, :, None, None, None, :]
-        + rows[None, None, None, :, None, None] * up[:, :, None, None, None, :]
-        + depths[None, None, :, None, None, None] * forward[:, :, None, None, None, :]
-    )  # (B, V, D, S, S, 3) world (x, y, z)
-    # grid_sample reads the last grid axis as (W, H, D) = (k, j, i) = (z, y, x); with
+    d, y, x = torch.meshgrid(depths, rows, cols, indexing="ij")
+    camera = torch.stack([x, y, -d], dim=-1).reshape(-1, 3)  # camera frame: x right, y up, z backward
+    # World point p = basis^T c, i.e. the row vector c @ basis. grid_sample reads the last grid axis
+    # as (W, H, D) = (k, j, i) = (z, y, x), so the basis columns are reversed; with
     # align_corners=False the normalised coordinate of voxel centre i is 2 * x_i, x_i in (-0.5, 0.5).
-    return 2.0 * points.flip(-1)
+    basis = camera_basis(viewpoints).flip(-1) * 2.0  # (B, V, 3, 3)
+    grid = camera @ basis.reshape(batch * num_views, 3, 3)  # (B * V, D * S * S, 3)
+    return grid.reshape(batch, num_views, num_samples, image_size, image_size, 3)
 
 
 def soft_error_projection(

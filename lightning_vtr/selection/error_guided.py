@@ -14,7 +14,8 @@ from lightning_vtr.selection.projection import (
     _check_pair,
     error_projection,
     error_volume,
-    select_views,
+    sample_around_bins,
+    top_bins,
     view_scores,
 )
 
@@ -124,8 +125,8 @@ class ErrorGuidedSelector(ViewSelector):
 
         An empty batch (``B = 0``, e.g. a DDP rank with no object this epoch) returns an empty
         ``(0, num_views, 2)`` tensor. ``categories`` is checked for length only; the selection itself is
-        per object. Random draws: first the Gaussian samples of every object, then the uniform fallback of
-        the objects without error, in batch order, all from ``generator``.
+        per object. Random draws, all from ``generator``: the tie order and Gaussian samples of
+        :func:`select_views`, then the uniform fallback of the objects without error, in batch order.
         """
         predicted, target = _check_pair(predicted, target)
         if len(categories) != predicted.shape[0]:
@@ -134,8 +135,9 @@ class ErrorGuidedSelector(ViewSelector):
             )
         # 1. score every candidate view by the error it sees
         scores = self.score_views(predicted, target)
-        # 2. sample around the best bins
-        views = select_views(scores, self.k, self.num_views, generator=generator, sigma=self.sigma)
+        # 2. keep the best bins (exact ties in random order) and sample around their centres
+        bins = top_bins(scores, self.num_views, generator=generator)
+        views = sample_around_bins(bins, self.k, sigma=self.sigma, generator=generator).to(torch.get_default_dtype())
         # 3. objects without error: no preferred side, sample uniformly
         no_error = scores.sum(dim=1) <= 0
         count = int(no_error.sum())
@@ -143,7 +145,7 @@ class ErrorGuidedSelector(ViewSelector):
             uniform = sample_uniform_viewpoints(count * self.num_views, mode=self.fallback, generator=generator)
             views[no_error] = uniform.view(count, self.num_views, 2).to(views)
         self.last_scores = scores.detach()
-        self.last_bins = torch.argsort(-scores.detach().double(), dim=1, stable=True)[:, : self.num_views]
+        self.last_bins = bins
         self.last_fallback = no_error
         return views
 

@@ -42,7 +42,15 @@ from lightning_vtr.geometry import (
     wrap_yaw,
 )
 
-__all__ = ["error_projection", "error_volume", "nearest_bins", "select_views", "view_scores"]
+__all__ = [
+    "error_projection",
+    "error_volume",
+    "nearest_bins",
+    "sample_around_bins",
+    "select_views",
+    "top_bins",
+    "view_scores",
+]
 
 #: Depths closer than this (world units; a voxel is 1/R >= 1e-3 wide) are treated as equal.
 _DEPTH_TIE_TOLERANCE = 1e-9
@@ -300,6 +308,24 @@ def nearest_bins(viewpoints: Tensor, k: int = 30) -> Tensor:
     return i_pitch * n_yaw + i_yaw
 
 
+def top_bins(scores: Tensor, n: int = 3, *, generator: torch.Generator | None = None) -> Tensor:
+    """Indices ``(B, n)`` of the ``n`` highest scores per row, best first.
+
+    Exactly equal scores are ordered at random (one uniform per score from ``generator``). Ties are
+    common: with a binary error a view and its antipode see mirror-image silhouettes and score the same,
+    and a fixed order would always favour the lower-index (southern, western) bin.
+    """
+    if not isinstance(scores, Tensor) or scores.ndim != 2:
+        shape = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
+        raise ValueError(f"`scores` must have shape (B, V), got {shape}")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= scores.shape[1]:
+        raise ValueError(f"`n` must be an int in [1, {scores.shape[1]}] (the number of candidate views), got {n!r}")
+    priority = torch.rand(scores.shape, generator=generator, dtype=torch.float64).to(scores.device)
+    shuffled = torch.argsort(priority, dim=1)
+    by_score = torch.argsort(-scores.detach().to(torch.float64).gather(1, shuffled), dim=1, stable=True)
+    return shuffled.gather(1, by_score[:, :n])
+
+
 def select_views(
     scores: Tensor,
     k: int = 30,
@@ -310,17 +336,18 @@ def select_views(
 ) -> Tensor:
     """Sample ``n`` viewpoints per object around its ``n`` best-scoring candidate bins.
 
-    The ``n`` highest scores are kept (equal scores go to the lower candidate index, so the choice is
-    deterministic); each final viewpoint is drawn from ``N(bin centre, sigma)`` independently in yaw and
-    pitch, then yaw is wrapped into ``[-180, 180)`` and pitch clamped into ``[-90, 90]``. Objects whose
-    scores are all zero are not special-cased here (see :class:`ErrorGuidedSelector` for the fallback).
+    The ``n`` highest scores are kept (:func:`top_bins`: exact ties in random order); each final viewpoint
+    is drawn from ``N(bin centre, sigma)`` independently in yaw and pitch, then yaw is wrapped into
+    ``[-180, 180)`` and pitch clamped into ``[-90, 90]``. Objects whose scores are all zero are not
+    special-cased here (see :class:`ErrorGuidedSelector` for the uniform fallback). Random draws from
+    ``generator``: ``(B, V)`` uniforms for the tie order, then ``(B, n, 2)`` normals.
 
     Args:
         scores: ``(B, V)`` with ``V = (180 / K) * (360 / K)`` in
             :func:`~lightning_vtr.geometry.candidate_viewpoints` order.
         k: bin interval ``K`` in degrees (must divide 180).
         n: views per object, ``1 <= n <= V``.
-        generator: CPU generator for the Gaussian noise.
+        generator: CPU generator.
         sigma: standard deviation in degrees; ``None`` means the paper's ``K / 6``.
 
     Returns:
@@ -331,12 +358,23 @@ def select_views(
     if not isinstance(scores, Tensor) or scores.ndim != 2 or scores.shape[1] != candidates.shape[0]:
         shape = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
         raise ValueError(f"`scores` must have shape (B, {candidates.shape[0]}) for K={k}, got {shape}")
-    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= candidates.shape[0]:
-        raise ValueError(f"`n` must be an int in [1, {candidates.shape[0]}] for K={k}, got {n!r}")
     sigma = k / 6.0 if sigma is None else sigma
     if not (sigma >= 0 and math.isfinite(sigma)):
         raise ValueError(f"`sigma` must be a finite number >= 0 (degrees), got {sigma!r}")
-    best = torch.argsort(-scores.detach().to(torch.float64), dim=1, stable=True)[:, :n]  # (B, n)
-    centres = candidates.to(scores.device, torch.float64)[best]  # (B, n, 2)
-    out_dtype = scores.dtype if scores.is_floating_point() else torch.get_default_dtype()
-    return sample_gaussian_viewpoints(centres, sigma, generator=generator).to(out_dtype)
+    best = top_bins(scores, n, generator=generator)  # (B, n)
+    return sample_around_bins(best, k, sigma=sigma, generator=generator).to(
+        scores.dtype if scores.is_floating_point() else torch.get_default_dtype()
+    )
+
+
+def sample_around_bins(
+    bins: Tensor, k: int = 30, *, sigma: float | None = None, generator: torch.Generator | None = None
+) -> Tensor:
+    """Viewpoints ``(..., 2)`` in degrees drawn from ``N(centre of bin, sigma)`` for flat bin indices ``(...)``.
+
+    ``sigma`` defaults to ``K / 6``; yaw is wrapped and pitch clamped.
+    """
+    k = check_bin_interval(k)
+    sigma = k / 6.0 if sigma is None else sigma
+    centres = candidate_viewpoints(k).to(bins.device, torch.float64)[bins]
+    return sample_gaussian_viewpoints(centres, sigma, generator=generator)

@@ -1,0 +1,230 @@
+"""MVTN: a network that regresses view offsets, trained through a differentiable projection (comparison method).
+
+Hamdi et al. (ICCV 2021) learn per-shape camera viewpoints by back-propagating a downstream loss
+through a differentiable renderer. The paper adapts it to reconstruction with voxels instead of point
+clouds and 3 views; here the network reads the object's error volume (or its predicted volume) and
+moves 3 base views within bounds so that they see as much reconstruction error as possible, measured
+by :func:`~lightning_vtr.selection.differentiable_projection.soft_error_projection`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from lightning_vtr.geometry import wrap_yaw
+from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.differentiable_projection import soft_error_projection
+from lightning_vtr.selection.projection import error_volume
+
+__all__ = ["MVTNSelector"]
+
+
+class _ViewRegressor(nn.Module):
+    """``(B, 1, R, R, R)`` volume -> ``(B, V, 2)`` unbounded view parameters (any ``R >= 4``).
+
+    Two strided 3D convolutions and an adaptive pool make the encoder independent of ``R``; the last
+    layer starts at zero so an untrained network returns the base views exactly.
+    """
+
+    def __init__(self, num_views: int, width: int, hidden: int) -> None:
+        super().__init__()
+        self.num_views = num_views
+        self.encoder = nn.Sequential(
+            nn.Conv3d(1, width, kernel_size=3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv3d(width, 2 * width, kernel_size=3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool3d(4),
+            nn.Flatten(),
+        )
+        self.head = nn.Sequential(nn.Linear(2 * width * 64, hidden), nn.ReLU(), nn.Linear(hidden, 2 * num_views))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, volumes: Tensor) -> Tensor:
+        return self.head(self.encoder(volumes)).view(-1, self.num_views, 2)
+
+
+class MVTNSelector(ViewSelector):
+    """Regress bounded offsets of 3 base views from the error volume, maximising the error they cover.
+
+    Views are ``yaw_i = base_yaw_i + max_yaw_offset * tanh(a_i)`` and
+    ``pitch_i = 90 tanh(atanh(base_pitch / 90) + b_i)`` (degrees), where ``(a_i, b_i)`` come from a
+    small 3D-conv network. The yaw offset is bounded as in MVTN's circular setup (``180 / num_views``
+    by default, so the views keep their sectors); the pitch reparameterisation starts at the base
+    pitch and reaches any elevation in ``(-90, 90)``. Each :meth:`select` call
+
+    1. computes the error volume ``E`` (:func:`~lightning_vtr.selection.projection.error_volume`),
+    2. trains the network for ``steps`` Adam steps on the batch, maximising the mean over objects of
+       the summed coverage ``sum_views mean_pixels P(E, view)`` of the soft first-hit projection,
+    3. returns the network's views for the batch.
+
+    The network and its optimizer persist across calls (:meth:`state_dict`); their initialisation is
+    seeded, so two selectors built with the same ``seed`` behave identically and ``generator`` is not
+    used. With DDP each rank trains on its own objects unless the caller merges states.
+
+    Args:
+        num_views: views per object.
+        base_yaw: the views' base yaws in degrees (default evenly spaced from 0: 0 / 120 / 240).
+        base_pitch: base elevation in degrees, in ``(-90, 90)``.
+        max_yaw_offset: bound of the yaw offset in degrees (default ``180 / num_views``).
+        steps: Adam steps per ``select`` call.
+        lr: Adam learning rate.
+        input: ``"error"`` (the error volume) or ``"predicted"`` (the prediction) fed to the network.
+        threshold: binarisation threshold of the prediction for the error volume (the paper's 0.4).
+        density: sharpness of the soft projection (opacity per voxel of error crossed).
+        image_size: side of the projected maps (default ``R``).
+        width: channels of the first convolution; hidden: width of the MLP.
+        seed: seed of the network's initialisation.
+
+    Raises:
+        ValueError: for a bad count, bound, pitch, learning rate or ``input``.
+
+    Example::
+
+        selector = MVTNSelector(steps=10)
+        views = selector.select(pred, target, categories)  # (B, 3, 2) degrees
+    """
+
+    uses_pool = False
+
+    def __init__(
+        self,
+        num_views: int = 3,
+        base_yaw: list[float] | None = None,
+        base_pitch: float = 30.0,
+        max_yaw_offset: float | None = None,
+        steps: int = 10,
+        lr: float = 1e-2,
+        input: Literal["error", "predicted"] = "error",
+        threshold: float = 0.4,
+        density: float = 5.0,
+        image_size: int | None = None,
+        width: int = 8,
+        hidden: int = 64,
+        seed: int = 0,
+    ) -> None:
+        for name, value, low in (("num_views", num_views, 1), ("steps", steps, 0), ("width", width, 1), ("hidden", hidden, 1)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"`{name}` must be an int >= {low}, got {value!r}")
+        base_yaw = [i * 360.0 / num_views for i in range(num_views)] if base_yaw is None else list(base_yaw)
+        if len(base_yaw) != num_views:
+            raise ValueError(f"`base_yaw` must hold num_views={num_views} angles (degrees), got {len(base_yaw)}")
+        if not -90.0 < base_pitch < 90.0:
+            raise ValueError(f"`base_pitch` must lie in (-90, 90) degrees, got {base_pitch!r}")
+        max_yaw_offset = 180.0 / num_views if max_yaw_offset is None else float(max_yaw_offset)
+        if not 0.0 <= max_yaw_offset <= 180.0:
+            raise ValueError(f"`max_yaw_offset` must lie in [0, 180] degrees, got {max_yaw_offset!r}")
+        if not (lr > 0 and math.isfinite(lr)):
+            raise ValueError(f"`lr` must be a positive finite number, got {lr!r}")
+        if input not in ("error", "predicted"):
+            raise ValueError(f"`input` must be 'error' or 'predicted', got {input!r}")
+        self.num_views = num_views
+        self.base_yaw = torch.tensor(base_yaw, dtype=torch.float32)
+        self.base_pitch = float(base_pitch)
+        self.max_yaw_offset = max_yaw_offset
+        self.steps = steps
+        self.lr = lr
+        self.input = input
+        self.threshold = threshold
+        self.density = density
+        self.image_size = image_size
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.network = _ViewRegressor(num_views, width, hidden)
+        self.optimizer = torch.optim.Adam(self.network.parameters(), lr=lr)
+
+    # ------------------------------------------------------------------------------------ public API
+    def select(
+        self,
+        predicted: Tensor,
+        target: Tensor,
+        categories: list[str],
+        generator: torch.Generator | None = None,
+        context: SelectionContext | None = None,
+    ) -> Tensor:
+        """Train on the batch, then return its views ``(B, num_views, 2)`` in degrees.
+
+        Args:
+            predicted: ``(B, R, R, R)`` occupancy probabilities.
+            target: ``(B, R, R, R)`` ground truth.
+            categories: ``B`` category names (unused; one network serves every category).
+            generator: unused (training is deterministic given the seed and the data).
+            context: unused.
+        """
+        # 1. check inputs and build the volumes the network reads and the projection scores
+        if len(categories) != predicted.shape[0]:
+            raise ValueError(f"`categories` must hold one name per object: expected {predicted.shape[0]}, got {len(categories)}")
+        # The callback may call us under no_grad / inference mode; training needs autograd and
+        # ordinary (non-inference) tensors.
+        with torch.inference_mode(False), torch.enable_grad():
+            error = error_volume(predicted.detach().clone(), target.detach().clone(), threshold=self.threshold)
+            error = error.float()
+            features = (error if self.input == "error" else predicted.detach().clone().float())[:, None]
+            self._to_device(error.device)
+
+            # 2. train the network to maximise the error its views cover
+            self.network.train()
+            for _ in range(self.steps):
+                self.optimizer.zero_grad()
+                loss = -self.coverage(error, self.views(features)).sum(1).mean()
+                loss.backward()
+                self.optimizer.step()
+
+            # 3. the trained network's views for this batch
+            self.network.eval()
+            with torch.no_grad():
+                views = self.views(features)
+        yaw = wrap_yaw(views[..., 0])
+        out = torch.stack([yaw, views[..., 1].clamp(-90.0, 90.0)], dim=-1)
+        return out.to(predicted.dtype if predicted.is_floating_point() else torch.float32)
+
+    def views(self, volumes: Tensor) -> Tensor:
+        """Network views ``(B, V, 2)`` in degrees (yaw not wrapped) for inputs ``(B, 1, R, R, R)``; differentiable."""
+        raw = self.network(volumes)
+        base_yaw = self.base_yaw.to(raw)
+        yaw = base_yaw + self.max_yaw_offset * torch.tanh(raw[..., 0])
+        pitch = 90.0 * torch.tanh(math.atanh(self.base_pitch / 90.0) + raw[..., 1])
+        return torch.stack([yaw, pitch], dim=-1)
+
+    def coverage(self, error: Tensor, views: Tensor) -> Tensor:
+        """Fraction ``(B, V)`` of each view's image covered by projected error, for ``error (B, R, R, R)``."""
+        maps = soft_error_projection(error, views, image_size=self.image_size, density=self.density)
+        return maps.mean(dim=(-2, -1))
+
+    def base_views(self) -> Tensor:
+        """The untrained views ``(num_views, 2)`` in degrees (yaw wrapped)."""
+        return torch.stack([wrap_yaw(self.base_yaw), torch.full_like(self.base_yaw, self.base_pitch)], dim=-1)
+
+    def _to_device(self, device: torch.device) -> None:
+        # Module.to moves parameters in place but leaves Adam's moment buffers where they were.
+        self.network.to(device)
+        for state in self.optimizer.state.values():
+            for key, value in state.items():
+                if isinstance(value, Tensor) and key != "step":
+                    state[key] = value.to(device)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Network weights and Adam state."""
+        return {
+            "network": {k: v.detach().cpu().clone() for k, v in self.network.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; an empty dict (an older checkpoint) keeps the seeded initialisation."""
+        if not state:
+            return
+        try:
+            self.network.load_state_dict(state["network"])
+        except RuntimeError as err:
+            raise ValueError(
+                "MVTNSelector state does not fit this network (was it saved with other num_views / width / hidden?): "
+                f"{err}"
+            ) from err
+        if "optimizer" in state:
+            self.optimizer.load_state_dict(state["optimizer"])
