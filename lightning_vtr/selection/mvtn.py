@@ -91,6 +91,8 @@ class MVTNSelector(ViewSelector):
     """
 
     uses_pool = False
+    #: MVTN learns from the predictions and targets alone; it needs no model or synthesizer.
+    needs_context = False
 
     def __init__(
         self,

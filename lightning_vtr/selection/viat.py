@@ -148,6 +148,8 @@ class VIATSelector(ViewSelector):
     """
 
     uses_pool = False
+    #: Tells the callback to pass a :class:`SelectionContext` (model, synthesizer, requests).
+    needs_context = True
 
     def __init__(
         self,
@@ -206,21 +208,24 @@ class VIATSelector(ViewSelector):
         """
         # 1. check inputs
         self._check_inputs(target, categories, context)
-        order = list(dict.fromkeys(categories))  # categories in first-appearance order: deterministic
-        for name in order:
-            if name not in self._mixtures:
-                self._mixtures[name] = _Mixture(self.num_components, self.lr)
+        # The callback may call us under no_grad / inference mode; the mixtures are trained with
+        # autograd and must stay ordinary tensors.
+        with torch.inference_mode(False), torch.enable_grad():
+            order = list(dict.fromkeys(categories))  # first-appearance order: deterministic
+            for name in order:
+                if name not in self._mixtures:
+                    self._mixtures[name] = _Mixture(self.num_components, self.lr)
 
-        # 2. NES on every category present
-        for _ in range(self.iterations):
-            self._nes_step(target, categories, order, generator, context)
+            # 2. NES on every category present
+            for _ in range(self.iterations):
+                self._nes_step(target, categories, order, generator, context)
 
-        # 3. sample one adversarial viewpoint per object and space the others in yaw
-        z = torch.zeros(len(categories), 2, dtype=torch.float64)
-        for name in order:
-            idx = [b for b, c in enumerate(categories) if c == name]
-            z[idx] = self._mixtures[name].sample(len(idx), generator)
-        out = self._view_sets(_to_viewpoints(z))
+            # 3. sample one adversarial viewpoint per object and space the others in yaw
+            z = torch.zeros(len(categories), 2, dtype=torch.float64)
+            for name in order:
+                idx = [b for b, c in enumerate(categories) if c == name]
+                z[idx] = self._mixtures[name].sample(len(idx), generator)
+            out = self._view_sets(_to_viewpoints(z))
         return out.to(device=target.device, dtype=target.dtype if target.is_floating_point() else torch.float32)
 
     def distribution(self, category: str) -> dict[str, Tensor]:

@@ -124,7 +124,7 @@ def _plate_error(r: int = 16, batch: int = 2) -> tuple[torch.Tensor, torch.Tenso
 def test_training_turns_a_view_toward_the_error():
     predicted, target = _plate_error()
     selector = MVTNSelector(steps=10, lr=1e-2)
-    assert isinstance(selector, ViewSelector) and selector.uses_pool is False
+    assert isinstance(selector, ViewSelector) and selector.uses_pool is False and selector.needs_context is False
     base = selector.base_views()
     views = selector.select(predicted, target, ["a", "b"])
     error = error_volume(predicted, target)

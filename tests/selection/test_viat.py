@@ -126,7 +126,7 @@ def test_nes_utilities_rank_shaping():
 def test_concentrates_on_the_adversarial_viewpoint():
     context, volumes = _setup(["chair", "chair"])
     selector = VIATSelector(num_components=2, population=16, lr=0.2, iterations=20, entropy_weight=0.01)
-    assert isinstance(selector, ViewSelector) and selector.uses_pool is False
+    assert isinstance(selector, ViewSelector) and selector.uses_pool is False and selector.needs_context is True
     views = selector.select(volumes, volumes, ["chair", "chair"], torch.Generator().manual_seed(0), context)
     initial = VIATSelector(num_components=2, iterations=0)  # the untrained starting distribution
     initial.select(volumes, volumes, ["chair", "chair"], torch.Generator().manual_seed(0), context)
@@ -191,6 +191,13 @@ def test_deterministic_with_a_seeded_generator():
         volumes, volumes, categories, torch.Generator().manual_seed(8), context
     )
     assert not torch.equal(outs[0], other)
+    # The callback may call selectors under inference mode: the NES steps still run, identically.
+    context, volumes = _setup(categories)
+    with torch.inference_mode():
+        inside = VIATSelector(population=4, iterations=3).select(
+            volumes, volumes, categories, torch.Generator().manual_seed(7), context
+        )
+    assert torch.equal(inside, outs[0])
 
 
 def test_state_round_trip_and_warm_start(tmp_path):
