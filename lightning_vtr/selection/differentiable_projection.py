@@ -3,8 +3,8 @@
 The error-guided selector's :func:`~lightning_vtr.selection.projection.error_projection` takes the
 error value at the *first hit* along each orthographic ray; that is a hard, piecewise-constant
 function of the viewpoint. MVTN needs gradients with respect to the viewing angles, so this module
-replaces the hard first hit by front-to-back emission-absorption compositing: the volume is
-resampled trilinearly (``F.grid_sample``) on rays laid out with
+replaces the hard first hit by the opacity a ray accumulates through the volume (one minus its
+transmittance, the volume acting as absorption density): the volume is resampled trilinearly (``F.grid_sample``) on rays laid out with
 :func:`lightning_vtr.geometry.camera_basis` and the image-plane convention of
 :func:`lightning_vtr.geometry.orthographic_pixel_coords`, so the maps line up pixel for pixel with
 the rest of the package. As ``density`` grows, the soft map tends to the hard first-hit map, which
@@ -82,16 +82,16 @@ def soft_error_projection(
     hard: bool = False,
     eps: float = 0.0,
 ) -> Tensor:
-    """Orthographic first-hit maps of (error) volumes, differentiable in the volumes and the angles.
+    r"""Orthographic first-hit maps of (error) volumes, differentiable in the volumes and the angles.
 
     Along each ray the volume value ``e_t`` (trilinear) at samples ``t = 1..D`` ordered from the
     camera acts as opacity; the map is the opacity accumulated front to back:
 
     .. math::
 
-        \\alpha_t = 1 - \\exp(-\\rho\\, e_t\\, \\Delta), \\quad
-        T_t = \\prod_{s < t} (1 - \\alpha_s), \\quad
-        P(u, v) = \\sum_t T_t\\, \\alpha_t = 1 - T_{D + 1}
+        \alpha_t = 1 - \exp(-\rho\, e_t\, \Delta), \quad
+        T_t = \prod_{s < t} (1 - \alpha_s), \quad
+        P(u, v) = \sum_t T_t\, \alpha_t = 1 - T_{D + 1}
 
     with ``Δ`` the sample spacing in voxels and ``ρ = density``. For a binary volume and large
     ``ρ``, ``P`` is the silhouette of the volume, i.e. the binary error at the first hit. (Using
