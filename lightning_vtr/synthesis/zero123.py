@@ -484,7 +484,9 @@ class Zero123Synthesizer(Synthesizer):
         placement = self._resolve_placement()
         if placement != self._placed:
             for module in self._modules():
-                module.to(device=placement[0], dtype=placement[1])
+                # diffusers warns on every .to(dtype); only pass the dtype when it changes
+                current = next(module.parameters()).dtype
+                module.to(device=placement[0], dtype=None if current == placement[1] else placement[1])
             self._placed = placement
         return placement
 

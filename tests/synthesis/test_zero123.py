@@ -44,6 +44,15 @@ def _request(object_id="chair_0001", targets=((80.0, 0.0), (10.0, 40.0))) -> Syn
     )
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    # the tiny model's ops are too small to split; with busy cores, 2-thread OpenMP barriers made it ~20x slower
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 @pytest.fixture(scope="module")
 def synth_a(tiny_zero123) -> Zero123Synthesizer:
     return Zero123Synthesizer.from_pretrained(tiny_zero123.layout_a, **FAST)
