@@ -55,6 +55,14 @@ def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
     return out
 
 
+def _broadcast(trainer: L.Trainer, obj: Any) -> Any:
+    if trainer.world_size == 1 or not torch.distributed.is_available() or not torch.distributed.is_initialized():
+        return obj
+    box = [obj]
+    torch.distributed.broadcast_object_list(box, src=0)
+    return box[0]
+
+
 class ErrorGuidedViewAugmentation(L.Callback):
     r"""Trains a multi-view reconstruction model on the viewpoints it reconstructs worst.
 
@@ -245,49 +253,78 @@ class ErrorGuidedViewAugmentation(L.Callback):
             preds.append(pl_module.predict_voxels(batch).float().cpu())
         return torch.cat(preds)
 
-    def _select(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, indices: list[int]) -> list[_Selected]:
+    def _select(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, chosen: list[int]) -> list[_Selected]:
+        """Predict the chosen objects (sharded by rank), select their views, return them merged in order."""
         dm = trainer.datamodule
         records = dm.split_records("train")
-        items = [dm.eval_item(records[i], self.source_view_set, seed=epoch) for i in indices]
-        if not items:
-            return []
+        mine = chosen[trainer.global_rank :: trainer.world_size]
         was_training = pl_module.training
         pl_module.eval()
         try:
-            predicted = self._predict(pl_module, [it["images"] for it in items])
-            target = torch.stack([it["voxels"] for it in items])
-            requests = [self._request(dm, records[i], torch.empty(0, 2)) for i in indices] if self._needs_context() else []
-            context = self._context(trainer, pl_module, requests) if requests else None
+            items = [dm.eval_item(records[i], self.source_view_set, seed=epoch) for i in mine]
+            predicted = self._predict(pl_module, [it["images"] for it in items]) if items else torch.empty(0)
+            target = torch.stack([it["voxels"] for it in items]) if items else torch.empty(0)
+            if self.selector.batched:
+                return self._select_batched(trainer, pl_module, epoch, mine, predicted, target)
             selected = []
-            for row, index in enumerate(indices):
+            for row, index in enumerate(mine):
                 rec = records[index]
-                ctx = None
-                if context is not None:
-                    ctx = SelectionContext(**{**context.__dict__, "requests": [requests[row]]})
+                context = self._context(trainer, pl_module, [self._request(dm, rec)]) if self.selector.needs_context else None
                 views = self.selector.select(
                     predicted[row : row + 1],
                     target[row : row + 1],
                     [rec.category],
                     generator=_generator(self.seed, epoch, index, 0),
-                    context=ctx,
+                    context=context,
                 )[0]
-                error = ((predicted[row] >= 0.4).float() != target[row]).float().mean().item()
-                selected.append(_Selected(index, rec.category, rec.object_id, views.detach().cpu().numpy(), error))
+                selected.append(self._selected(rec, index, views, predicted[row], target[row]))
         finally:
             pl_module.train(was_training)
-        return selected
+        merged = [s for part in _all_gather(trainer, selected) for s in part]
+        return sorted(merged, key=lambda s: s.index)
 
-    def _needs_context(self) -> bool:
-        return bool(getattr(self.selector, "needs_context", False))
+    def _select_batched(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, mine: list[int], predicted: Tensor, target: Tensor
+    ) -> list[_Selected]:
+        # Learning selectors see every searched object in one call on rank 0; the selections and the learned
+        # state are broadcast so every rank (and rank 0's checkpoint) holds the same selector.
+        dm = trainer.datamodule
+        records = dm.split_records("train")
+        parts = _all_gather(trainer, (mine, predicted, target))
+        indices = [i for part in parts for i in part[0]]
+        order = sorted(range(len(indices)), key=lambda j: indices[j])
+        indices = [indices[j] for j in order]
+        payload = None
+        if trainer.is_global_zero:
+            all_pred = torch.cat([p[1] for p in parts if len(p[0])])[order]
+            all_target = torch.cat([p[2] for p in parts if len(p[0])])[order]
+            recs = [records[i] for i in indices]
+            context = None
+            if self.selector.needs_context:
+                context = self._context(trainer, pl_module, [self._request(dm, r) for r in recs])
+            views = self.selector.select(
+                all_pred, all_target, [r.category for r in recs], generator=_generator(self.seed, epoch, 0, 2), context=context
+            )
+            selected = [self._selected(r, i, v, p, t) for r, i, v, p, t in zip(recs, indices, views, all_pred, all_target)]
+            payload = (selected, self.selector.state_dict())
+        payload = _broadcast(trainer, payload)
+        if not trainer.is_global_zero:
+            self.selector.load_state_dict(payload[1])
+        return payload[0]
 
-    def _request(self, dm: Any, record: Any, targets: Tensor) -> SynthesisRequest:
+    @staticmethod
+    def _selected(record: Any, index: int, views: Tensor, predicted: Tensor, target: Tensor) -> _Selected:
+        error = ((predicted >= 0.4).float() != target).float().mean().item()
+        return _Selected(index, record.category, record.object_id, views.detach().cpu().numpy(), error)
+
+    def _request(self, dm: Any, record: Any, targets: Tensor | None = None) -> SynthesisRequest:
         images, viewpoints = dm.object_views(record, self.source_view_set)
         return SynthesisRequest(
             object_id=record.object_id,
             category=record.category,
             source_images=images,
             source_viewpoints=torch.as_tensor(viewpoints, dtype=torch.float32),
-            target_viewpoints=torch.as_tensor(targets, dtype=torch.float32),
+            target_viewpoints=torch.zeros(0, 2) if targets is None else torch.as_tensor(targets, dtype=torch.float32),
             mesh_path=record.mesh_path,
         )
 
@@ -334,10 +371,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         if num_train == 0:
             rank_zero_warn("ErrorGuidedViewAugmentation: the datamodule has no training objects; nothing generated.")
             return
-        chosen = self._choose_objects(num_train, epoch)
-        mine = chosen[trainer.global_rank :: trainer.world_size]
-        selected = [s for part in _all_gather(trainer, self._select(trainer, pl_module, epoch, mine)) for s in part]
-        selected.sort(key=lambda s: s.index)
+        selected = self._select(trainer, pl_module, epoch, self._choose_objects(num_train, epoch))
         view_sets = self._view_sets(epoch, selected)
         images = self._synthesize(trainer, epoch, selected, view_sets)
         samples = [

@@ -49,6 +49,12 @@ class ViewSelector(abc.ABC):
     #: Whether the callback should store selections in a per-category viewpoint pool and train on
     #: view sets drawn from it (the paper's error-guided method), rather than on the selections directly.
     uses_pool: bool = False
+    #: Whether ``select`` needs a :class:`SelectionContext` (the model and synthesizer).
+    needs_context: bool = False
+    #: Whether the selector learns across objects (VIAT's mixtures, MVTN's network): the callback then calls
+    #: ``select`` once per epoch with all searched objects, on global rank 0, and broadcasts the result and
+    #: the selector's state so every rank stays identical. Stateless selectors are called per object, sharded.
+    batched: bool = False
 
     @abc.abstractmethod
     def select(

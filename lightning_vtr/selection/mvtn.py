@@ -93,6 +93,7 @@ class MVTNSelector(ViewSelector):
     uses_pool = False
     #: MVTN learns from the predictions and targets alone; it needs no model or synthesizer.
     needs_context = False
+    batched = True
 
     def __init__(
         self,

@@ -150,6 +150,7 @@ class VIATSelector(ViewSelector):
     uses_pool = False
     #: Tells the callback to pass a :class:`SelectionContext` (model, synthesizer, requests).
     needs_context = True
+    batched = True
 
     def __init__(
         self,
