@@ -427,7 +427,9 @@ class Zero123Synthesizer(Synthesizer):
                 f"(noisy latent + image latent), found {unet.config.in_channels}"
             )
         if unet.config.out_channels != latent:
-            problems.append(f"unet: expected out_channels = vae latent_channels = {latent}, found {unet.config.out_channels}")
+            problems.append(
+                f"unet: expected out_channels = vae latent_channels = {latent}, found {unet.config.out_channels}"
+            )
         clip_dim = image_encoder.config.projection_dim
         if projection.in_features != clip_dim + 4:
             problems.append(
@@ -451,7 +453,9 @@ class Zero123Synthesizer(Synthesizer):
     def _resolve_placement(self) -> tuple[torch.device, torch.dtype]:
         device = self._device_arg
         if device is None:
-            device = torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
+            # the current CUDA device is each DDP rank's own GPU under Lightning
+            cuda = torch.cuda.is_available()
+            device = torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
         dtype = self._dtype_arg
         if dtype is None:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
@@ -494,13 +498,15 @@ class Zero123Synthesizer(Synthesizer):
 
     def config_key(self) -> str:
         """Everything that changes the output: weights, pose embedding, sampling settings, framing, dtype."""
-        sched = json.dumps({k: v for k, v in dict(self.scheduler.config).items() if not k.startswith("_")}, sort_keys=True, default=str)
+        sched_config = {k: v for k, v in dict(self.scheduler.config).items() if not k.startswith("_")}
+        sched = json.dumps(sched_config, sort_keys=True, default=str)
         return (
             f"Zero123Synthesizer(weights={self.weights_id}, pose={self.pose_embedding}, "
             f"steps={self.num_inference_steps}, guidance={self.guidance_scale!r}, eta={self.eta!r}, seed={self.seed}, "
             f"image_size={self.image_size}, resolution={self.resolution}, foreground_ratio={self.foreground_ratio!r}, "
             f"background_threshold={self.background_threshold!r}, restore_scale={self.restore_scale}, "
-            f"clip=({self.clip_size}, {self.image_mean}, {self.image_std}), dtype={str(self.dtype).removeprefix('torch.')}, "
+            f"clip=({self.clip_size}, {self.image_mean}, {self.image_std}), "
+            f"dtype={str(self.dtype).removeprefix('torch.')}, "
             f"scheduler={hashlib.sha256(sched.encode()).hexdigest()[:12]})"
         )
 
@@ -610,12 +616,8 @@ class Zero123Synthesizer(Synthesizer):
         pose = relative_pose(source.double(), target.double(), self.pose_embedding).float()  # (N, 4)
 
         # 4. denoise in batches
-        decoded = torch.cat(
-            [
-                self._generate(pixels[i : i + self.batch_size], pose[i : i + self.batch_size], seeds[i : i + self.batch_size], steps, guidance, eta)
-                for i in range(0, len(images), self.batch_size)
-            ]
-        )
+        batches = [slice(i, i + self.batch_size) for i in range(0, len(images), self.batch_size)]
+        decoded = torch.cat([self._generate(pixels[b], pose[b], seeds[b], steps, guidance, eta) for b in batches])
         if output_type == "pt":
             return decoded
 
@@ -669,7 +671,12 @@ class Zero123Synthesizer(Synthesizer):
         return (rgba * 255.0).round().to(torch.uint8).numpy()
 
     def encode_image(self, pixels: Tensor, pose: Tensor) -> Tensor:
-        """The conditioning token ``(n, 1, cross_attention_dim)`` from ``(n, 3, R, R)`` pixels in [0, 1] and ``(n, 4)`` poses."""
+        """The conditioning token ``(n, 1, cross_attention_dim)``.
+
+        Args:
+            pixels: ``(n, 3, R, R)`` RGB in ``[0, 1]`` composited on white.
+            pose: ``(n, 4)`` relative poses (radians), see :func:`~lightning_vtr.synthesis.pose.relative_pose`.
+        """
         device, dtype = self._place()
         x = F.interpolate(
             pixels.float(), size=(self.clip_size, self.clip_size), mode="bicubic", align_corners=False, antialias=True
@@ -682,7 +689,10 @@ class Zero123Synthesizer(Synthesizer):
         return self.projection(token)
 
     def encode_latents(self, pixels: Tensor) -> Tensor:
-        """VAE posterior mode ``(n, C, R/f, R/f)`` of ``(n, 3, R, R)`` pixels in [0, 1], *not* scaled by the VAE factor."""
+        """VAE posterior mode ``(n, C, R/f, R/f)`` of ``(n, 3, R, R)`` pixels in [0, 1].
+
+        Zero-1-to-3 concatenates this latent as is: it is *not* multiplied by the VAE scaling factor.
+        """
         device, dtype = self._place()
         return self.vae.encode((pixels * 2.0 - 1.0).to(device=device, dtype=dtype)).latent_dist.mode()
 
@@ -703,7 +713,8 @@ class Zero123Synthesizer(Synthesizer):
         # b. initial noise, drawn on the CPU from per-pair generators so results do not depend on the device
         #    or on which other pairs share the batch
         generators = [torch.Generator().manual_seed(int(s)) for s in seeds]
-        shape = (self.unet.config.out_channels, self.resolution // self.vae_scale_factor, self.resolution // self.vae_scale_factor)
+        side = self.resolution // self.vae_scale_factor
+        shape = (self.unet.config.out_channels, side, side)
 
         def noise() -> Tensor:
             return torch.stack([torch.randn(shape, generator=g) for g in generators]).to(device=device, dtype=dtype)
