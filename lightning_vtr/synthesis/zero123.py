@@ -298,7 +298,6 @@ class Zero123Synthesizer(Synthesizer):
         self.resolution = int(sample_size) * self.vae_scale_factor
         self._device_arg = None if device is None else torch.device(device)
         self._dtype_arg = dtype
-        self._placed: tuple[torch.device, torch.dtype] | None = None
         self.weights_id = weights_id if weights_id is not None else _fingerprint_modules(self._modules())
         self._resolve_placement()  # fail early on an unsupported device/dtype pair
 
@@ -485,14 +484,15 @@ class Zero123Synthesizer(Synthesizer):
         return self
 
     def _place(self) -> tuple[torch.device, torch.dtype]:
-        placement = self._resolve_placement()
-        if placement != self._placed:
-            for module in self._modules():
+        device, dtype = self._resolve_placement()
+        for module in self._modules():
+            # read the module's actual placement: modules may be shared with another synthesizer or moved by hand
+            param = next(module.parameters())
+            same_device = param.device.type == device.type and (device.index is None or param.device.index == device.index)
+            if not same_device or param.dtype != dtype:
                 # diffusers warns on every .to(dtype); only pass the dtype when it changes
-                current = next(module.parameters()).dtype
-                module.to(device=placement[0], dtype=None if current == placement[1] else placement[1])
-            self._placed = placement
-        return placement
+                module.to(device=device, dtype=None if param.dtype == dtype else dtype)
+        return device, dtype
 
     # ------------------------------------------------------------------ configuration
 

@@ -347,3 +347,16 @@ def test_empty_requests(synth_a):
     out = synth_a.synthesize([_request(targets=torch.zeros(0, 2))])
     assert len(out) == 1 and out[0].shape == (0, 32, 32, 4)
     assert synth_a.synthesize([]) == []
+
+
+def test_reduced_precision_path(synth_a):
+    # the fp16-on-GPU path exercised with bfloat16 on the CPU: every input must be cast to the modules' dtype
+    low = _sibling(synth_a, dtype=torch.bfloat16)
+    try:
+        out = low([_object_image()], torch.zeros(1, 2), torch.tensor([[30.0, 0.0]]), output_type="pt")
+        assert next(low.unet.parameters()).dtype == torch.bfloat16
+        assert out.dtype == torch.float32 and out.shape == (1, 3, 64, 64)
+        assert torch.isfinite(out).all() and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    finally:
+        synth_a._place()  # the sibling shares synth_a's modules: move them back
+    assert next(synth_a.unet.parameters()).dtype == torch.float32
