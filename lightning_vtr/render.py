@@ -4,6 +4,10 @@ Camera poses come from :func:`lightning_vtr.geometry.camera_pose`, so a rendered
 projection and the Zero-1-to-3 pose all share one definition of a viewpoint ``(yaw, pitch)`` in
 degrees. Creating an OpenGL context is slow and contexts leak, so every :class:`Renderer` in a process
 draws through one shared :class:`pyrender.OffscreenRenderer`, resized on demand.
+
+Caveat (pyrender with EGL): ``OffscreenRenderer.delete()`` terminates the process's EGL display, which
+invalidates every other live context. Do not create and delete private OffscreenRenderers next to this
+module's; closing the last :class:`Renderer` deletes the shared one, and the next render makes a new one.
 """
 
 from __future__ import annotations
@@ -256,16 +260,14 @@ class Renderer:
 
 
 def _unpremultiply(rgba: np.ndarray) -> np.ndarray:
-    """Turn the multisample-resolved colour (blended with a black background) into straight alpha."""
-    alpha = rgba[..., 3:4].astype(np.float32)
-    edge = (alpha > 0) & (alpha < 255)
-    if not edge.any():
-        return rgba
-    rgb = rgba[..., :3].astype(np.float32)
-    fixed = np.where(edge, np.clip(rgb * 255.0 / np.maximum(alpha, 1.0), 0.0, 255.0), rgb)
-    out = rgba.copy()
-    out[..., :3] = np.rint(fixed).astype(np.uint8)
-    return out
+    """Turn the multisample-resolved colour (blended with a black background) into straight alpha, in place."""
+    alpha = rgba[..., 3]
+    edge = np.nonzero((alpha > 0) & (alpha < 255))  # only anti-aliased edge pixels need the division
+    if edge[0].size:
+        a = alpha[edge].astype(np.float32)[:, None]
+        rgb = rgba[edge][:, :3].astype(np.float32)
+        rgba[(*edge, slice(0, 3))] = np.rint(np.clip(rgb * 255.0 / a, 0.0, 255.0)).astype(np.uint8)
+    return rgba
 
 
 def get_renderer(image_size: int = 256, **kwargs: Any) -> Renderer:
