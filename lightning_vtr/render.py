@@ -276,7 +276,8 @@ def get_renderer(image_size: int = 256, **kwargs: Any) -> Renderer:
     All renderers share one GL context, so asking for several sizes or cameras costs no new context.
     Keyword arguments are those of :class:`Renderer`.
     """
-    key = (int(image_size), tuple(sorted(kwargs.items())))
+    # repr() so that list-valued options (e.g. base_color=[...]) can key the cache too.
+    key = (int(image_size), tuple(sorted((name, repr(value)) for name, value in kwargs.items())))
     with _CONTEXT.lock:
         renderer = _CACHE.get(key)
         if renderer is None or renderer._closed:
