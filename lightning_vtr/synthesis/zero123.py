@@ -488,7 +488,7 @@ class Zero123Synthesizer(Synthesizer):
         for module in self._modules():
             # read the module's actual placement: modules may be shared with another synthesizer or moved by hand
             param = next(module.parameters())
-            same_device = param.device.type == device.type and (device.index is None or param.device.index == device.index)
+            same_device = param.device.type == device.type and device.index in (None, param.device.index)
             if not same_device or param.dtype != dtype:
                 # diffusers warns on every .to(dtype); only pass the dtype when it changes
                 module.to(device=device, dtype=None if param.dtype == dtype else dtype)
