@@ -1,0 +1,102 @@
+"""VoxelReconstructionModule: input checks and per-view-set / per-category test logging."""
+
+from __future__ import annotations
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.protocol import ReconstructionModel
+from lightning_vtr.reporting import results_from_test_output
+
+
+class _PassThrough(VoxelReconstructionModule):
+    """Predicts voxel (i, j, k) = image[0, 0, i, j] of the first view, for every k."""
+
+    def __init__(self, **kwargs):
+        super().__init__(image_size=8, num_views=1, voxel_resolution=4, fscore_points=256, **kwargs)
+        self.w = torch.nn.Parameter(torch.zeros(()))
+
+    def reconstruct(self, images):
+        return {"voxels": images[:, 0, 0, :4, :4, None].expand(-1, 4, 4, 4) + 0 * self.w}
+
+    def loss(self, outputs, target):
+        return ((outputs["voxels"] - target) ** 2).mean()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def _sample(rows: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Target: rows 0-1 of the i axis; prediction: rows 0..rows-1. IoU = min(rows, 2) / max(rows, 2)."""
+    image = torch.zeros(1, 3, 8, 8)
+    image[0, 0, :rows, :4] = 1
+    voxels = torch.zeros(4, 4, 4)
+    voxels[:2] = 1
+    return image, voxels
+
+
+def _batch(rows, view_sets, categories):
+    images, voxels = zip(*(_sample(r) for r in rows))
+    return {"images": torch.stack(images), "voxels": torch.stack(voxels), "view_set": view_sets, "category": categories}
+
+
+def test_satisfies_protocol():
+    model = _PassThrough()
+    assert isinstance(model, ReconstructionModel)
+    assert (model.image_size, model.num_views, model.voxel_resolution) == (8, 1, 4)
+
+
+def test_test_logging_per_view_set_and_category():
+    batches = [
+        _batch([2, 4], ["aligned", "spherical"], ["chair", "lamp"]),  # IoU 1, 0.5
+        _batch([1, 3, 2], ["aligned", "aligned", "spherical"], ["lamp", "lamp", "lamp"]),  # 0.5, 2/3, 1
+    ]
+    trainer = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False)
+    out = trainer.test(_PassThrough(), DataLoader(batches, batch_size=None), verbose=False)
+    results = results_from_test_output(out)
+    assert set(results) == {"aligned", "spherical", "aligned/chair", "aligned/lamp", "spherical/lamp"}
+    assert results["aligned"]["iou@0.4"] == pytest.approx((1 + 0.5 + 2 / 3) / 3)
+    assert results["aligned"]["iou@0.2"] == pytest.approx((1 + 0.5 + 2 / 3) / 3)
+    assert results["aligned/chair"]["iou@0.4"] == pytest.approx(1.0)
+    assert results["aligned/lamp"]["iou@0.5"] == pytest.approx((0.5 + 2 / 3) / 2)
+    assert results["spherical"]["iou@0.3"] == pytest.approx(0.75)
+    assert results["spherical/lamp"]["iou@0.4"] == pytest.approx(0.75)
+    assert "hemispherical" not in results  # no samples: nothing logged
+    assert 0 <= results["spherical"]["fscore"] <= 1
+    assert "fscore" in results["aligned/lamp"]
+
+
+def test_validation_logs_iou():
+    batches = [_batch([2, 4], ["aligned"] * 2, ["a", "a"])]
+    model = _PassThrough(validation_fscore=False)
+    trainer = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False)
+    out = trainer.validate(model, DataLoader(batches, batch_size=None), verbose=False)[0]
+    assert out["val/iou@0.4"] == pytest.approx(0.75)
+    assert "val/fscore" not in out and "val/loss" in out
+
+
+@pytest.mark.parametrize(
+    ("images", "match"),
+    [
+        (torch.zeros(2, 3, 8, 8), r"\(B, V, 3, 8, 8\).*\(2, 3, 8, 8\)"),
+        (torch.zeros(2, 1, 4, 8, 8), r"3 \(RGB\) channels.*got 4"),
+        (torch.zeros(2, 1, 3, 8, 6), r"8x8 pixels.*got 8x6"),
+        (torch.full((1, 1, 3, 8, 8), float("nan")), "NaN"),
+        (torch.zeros(1, 1, 3, 8, 8, dtype=torch.uint8), "floating-point"),
+    ],
+)
+def test_bad_images_raise(images, match):
+    with pytest.raises(ValueError, match=match):
+        _PassThrough().predict_voxels(images)
+
+
+def test_bad_targets_and_view_sets_raise():
+    model = _PassThrough()
+    batch = _batch([2], ["aligned"], ["a"])
+    with pytest.raises(ValueError, match=r"\(1, 4, 4, 4\), got \(1, 5, 5, 5\)"):
+        model.training_step({**batch, "voxels": torch.zeros(1, 5, 5, 5)}, 0)
+    with pytest.raises(ValueError, match="'sideways'.*expected one of"):
+        model.test_step({**batch, "view_set": ["sideways"]}, 0)
