@@ -11,12 +11,11 @@ from torch import Tensor
 from lightning_vtr.geometry import candidate_viewpoints, check_bin_interval, sample_uniform_viewpoints
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.selection.projection import (
+    _candidate_scores,
     _check_pair,
-    error_projection,
     error_volume,
     sample_around_bins,
     top_bins,
-    view_scores,
 )
 
 __all__ = ["ErrorGuidedSelector"]
@@ -109,9 +108,22 @@ class ErrorGuidedSelector(ViewSelector):
 
     def score_views(self, predicted: Tensor, target: Tensor) -> Tensor:
         """Scores ``(B, V_c)`` of every candidate viewpoint (``candidate_viewpoints(k)`` order)."""
-        errors = self.error_volume(predicted, target)
-        projections = error_projection(errors, self.candidates.to(errors.device), eps=self.eps)
-        return view_scores(projections, reduction=self.reduction)
+        if self.mode == "binary":
+            # the {0, 1} error as bool: skips a float conversion of the grids
+            predicted, target = _check_pair(predicted, target)
+            errors = (predicted >= self.threshold) != (target >= 0.5)
+            if self.mask == "gt":
+                errors &= target >= 0.5
+        else:
+            errors = self.error_volume(predicted, target)
+        # equal to view_scores(error_projection(errors, candidates, eps=eps)) without the (B, V, R, R) maps
+        return _candidate_scores(
+            errors,
+            self.candidates.to(errors.device),
+            reduction=self.reduction,
+            eps=self.eps,
+            binary=self.mode == "binary" or None,
+        ).to(predicted.dtype)
 
     def select(
         self,

@@ -140,7 +140,7 @@ def _projection_table(
     """Per voxel and view: the scatter slot and the sortable first-hit key (cached per argument set).
 
     Returns:
-        ``slot (N, V)`` int32: ``v * (S^2 + 1) + row * S + col``, or ``v * (S^2 + 1) + S^2`` (a discarded
+        ``slot (N, V)`` int64 (the index dtype ``scatter_reduce`` needs): ``v * (S^2 + 1) + row * S + col``, or ``v * (S^2 + 1) + S^2`` (a discarded
         slot) for a centre outside the image; ``key (N, V)``: ``rank * N + n`` where ``rank`` is the
         position of voxel ``n`` in the view's (depth, flat index) order, so the smallest key in a pixel
         is its first hit and ``key % N`` names the voxel. int32 when ``N^2`` fits, else int64.
@@ -177,7 +177,7 @@ def _projection_table(
         rank = torch.empty_like(order).scatter_(-1, order, flat.expand_as(order).contiguous())
         keys.append(rank * n_vox + flat)
     table = (
-        torch.cat(slots).t().contiguous().to(device=device, dtype=torch.int32),
+        torch.cat(slots).t().contiguous().to(device=device, dtype=torch.int64),
         torch.cat(keys).t().contiguous().to(device=device, dtype=key_dtype),
     )
     _table_cache[key] = table
@@ -186,18 +186,65 @@ def _projection_table(
     return table
 
 
-def _first_hit_keys(volumes: Tensor, viewpoints: Tensor, image_size: int, half_extent: float, eps: float) -> Tensor:
-    """Smallest first-hit key per ``(object, view, pixel)``: ``(B, V, S^2)``, ``iinfo.max`` where nothing is hit."""
-    batch, resolution = volumes.shape[0], volumes.shape[1]
+def _first_hit_keys(occupied: Tensor, resolution: int, viewpoints: Tensor, image_size: int, half_extent: float) -> Tensor:
+    """Smallest first-hit key per ``(object, view, pixel)`` for ``occupied (B, N)`` bool voxels.
+
+    Returns ``(B, V, S^2)``; ``iinfo(dtype).max`` where nothing is hit.
+    """
+    batch = occupied.shape[0]
     n_views, pixels = viewpoints.shape[0], image_size * image_size
-    slot, key = _projection_table(resolution, viewpoints, image_size, half_extent, volumes.device)
-    obj, vox = torch.nonzero(volumes.reshape(batch, -1) > eps, as_tuple=True)  # (M,), (M,)
-    index = slot.index_select(0, vox).long()  # (M, V)
+    slot, key = _projection_table(resolution, viewpoints, image_size, half_extent, occupied.device)
+    # one flat nonzero is cheaper than a 2-d one; split it into (object, voxel) arithmetically
+    flat_ids = torch.nonzero(occupied.reshape(-1)).squeeze(1)
+    n_vox = resolution**3
+    obj, vox = flat_ids // n_vox, flat_ids % n_vox
+    index = slot.index_select(0, vox)  # (M, V)
     index += (obj * (n_views * (pixels + 1)))[:, None]
     sentinel = torch.iinfo(key.dtype).max
-    best = torch.full((batch * n_views * (pixels + 1),), sentinel, dtype=key.dtype, device=volumes.device)
+    best = torch.full((batch * n_views * (pixels + 1),), sentinel, dtype=key.dtype, device=occupied.device)
     best.scatter_reduce_(0, index.view(-1), key.index_select(0, vox).view(-1), reduce="amin", include_self=True)
     return best.view(batch, n_views, pixels + 1)[..., :pixels]
+
+
+def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
+    """Values ``(B, V, P)`` of the winning voxels of ``best`` keys in ``flat (B, N)``; 0 where nothing is hit."""
+    hit = best != torch.iinfo(best.dtype).max
+    winner = torch.where(hit, best % flat.shape[1], torch.zeros_like(best)).view(best.shape[0], -1).long()
+    return torch.gather(flat, 1, winner).view_as(best).masked_fill_(~hit, 0)
+
+
+def _is_binary(flat: Tensor, eps: float) -> bool:
+    """Whether every voxel above ``eps`` is exactly 1 (then every hit has value 1, no gather needed)."""
+    return bool((flat == 1).logical_or_(flat <= eps).all())
+
+
+def _candidate_scores(
+    volumes: Tensor,
+    viewpoints: Tensor,
+    *,
+    reduction: Literal["sum", "mean"],
+    eps: float,
+    binary: bool | None = None,
+) -> Tensor:
+    """``view_scores(error_projection(volumes, viewpoints, eps=eps), reduction=...)`` without the float maps.
+
+    ``binary=True`` asserts a ``{0, 1}`` volume (skips the check); scores are then hit-pixel counts.
+    """
+    batch, resolution = volumes.shape[0], volumes.shape[1]
+    dtype = volumes.dtype if volumes.is_floating_point() else torch.get_default_dtype()
+    if batch == 0:
+        return torch.zeros(0, viewpoints.shape[0], dtype=dtype, device=volumes.device)
+    flat = volumes.reshape(batch, -1)
+    occupied = flat.bool() if binary else flat > eps  # binary: values are exactly 0 or 1
+    best = _first_hit_keys(occupied, resolution, viewpoints, resolution, math.sqrt(3) / 2)
+    hits = (best < torch.iinfo(best.dtype).max).sum(-1, dtype=torch.int32)
+    if binary or (binary is None and _is_binary(flat, eps)):
+        total = hits.to(dtype)
+    else:
+        total = _hit_values(best, flat).sum(-1)
+    if reduction == "sum":
+        return total
+    return torch.where(hits > 0, total / hits.clamp_min(1).to(total.dtype), torch.zeros_like(total))
 
 
 def error_projection(
@@ -247,16 +294,12 @@ def error_projection(
         result = vol.new_zeros(out_shape)
         return result[0] if unbatched else result
 
-    best = _first_hit_keys(vol, vp, size, half_extent, eps)
-    hit = best != torch.iinfo(best.dtype).max
     flat = vol.reshape(batch, -1)
-    n_vox = flat.shape[1]
-    if bool((flat == 1).logical_or_(flat <= eps).all()):
-        # A {0, 1} volume (the paper's binary error): every hit has value 1, no gather needed.
-        result = hit.to(vol.dtype)
+    best = _first_hit_keys(flat > eps, resolution, vp, size, half_extent)
+    if _is_binary(flat, eps):  # the paper's binary error: every hit has value 1
+        result = (best != torch.iinfo(best.dtype).max).to(vol.dtype)
     else:
-        winner = torch.where(hit, best % n_vox, torch.zeros_like(best)).view(batch, -1).long()
-        result = torch.gather(flat, 1, winner).view_as(best).masked_fill_(~hit, 0)
+        result = _hit_values(best, flat)
     result = result.view(out_shape)
     return result[0] if unbatched else result
 

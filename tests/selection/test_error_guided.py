@@ -102,3 +102,17 @@ def test_validation_messages_name_argument_and_value():
     with pytest.raises(ValueError, match="`categories`.*2 for a batch of 1"):
         selector.select(torch.zeros(1, 8, 8, 8), torch.zeros(1, 8, 8, 8), ["a", "b"])
     assert isinstance(selector, ViewSelector)
+
+
+@pytest.mark.parametrize("mode", ["binary", "soft"])
+@pytest.mark.parametrize("reduction", ["sum", "mean"])
+def test_score_views_equals_scores_of_the_projection_maps(mode, reduction):
+    from lightning_vtr.selection import error_projection, error_volume, view_scores
+
+    gen = torch.Generator().manual_seed(1)
+    pred = torch.rand(3, 8, 8, 8, generator=gen)
+    gt = (torch.rand(3, 8, 8, 8, generator=gen) < 0.4).float()
+    selector = ErrorGuidedSelector(k=60, mode=mode, reduction=reduction, eps=0.05)
+    err = error_volume(pred, gt, mode=mode)
+    expected = view_scores(error_projection(err, candidate_viewpoints(60), eps=0.05), reduction=reduction)
+    assert torch.allclose(selector.score_views(pred, gt), expected, atol=1e-5)
