@@ -315,8 +315,12 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=list(hp.milestones), gamma=hp.gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
 
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # Stored outside "hyper_parameters", which load_from_checkpoint(..., preset=...) overwrites.
+        checkpoint["pix2vox_preset"] = self.preset
+
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        found = checkpoint.get("hyper_parameters", {}).get("preset")
+        found = checkpoint.get("pix2vox_preset", checkpoint.get("hyper_parameters", {}).get("preset"))
         if found is not None and found != self.preset:
             raise ValueError(
                 f"checkpoint was saved from a Pix2VoxPlusPlus with preset {found!r}; this model has preset "
