@@ -14,7 +14,6 @@ import matplotlib
 matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from lightning_vtr.geometry import angle_bins, candidate_viewpoints, check_bin_interval, check_viewpoints  # noqa: E402
