@@ -152,9 +152,9 @@ def test_tiny_preset_overfits_a_handful_of_objects():
     silhouettes = torch.stack([voxels.amax(dim=d) for d in (1, 2, 3)], dim=1)
     images = (F.interpolate(silhouettes, size=(64, 64), mode="nearest") * 2 - 1).unsqueeze(1)
     batch = {"images": images, "voxels": voxels, "category": ["shape"] * 6, "object_id": list("abcdef")}
-    model = Pix2VoxPlusPlus(preset="tiny", num_views=1, lr=3e-3, merger_lr=3e-3)
+    model = Pix2VoxPlusPlus(preset="tiny", num_views=1, lr=5e-3, merger_lr=5e-3, validation_fscore=False)
     trainer = L.Trainer(
-        max_epochs=80, logger=False, enable_progress_bar=False, enable_checkpointing=False, enable_model_summary=False
+        max_epochs=120, logger=False, enable_progress_bar=False, enable_checkpointing=False, enable_model_summary=False
     )
     trainer.fit(model, DataLoader([batch], batch_size=None))
     model.eval()
