@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.differentiable_projection import soft_error_projection
 from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 from lightning_vtr.selection.nature import NatureSelector
 from lightning_vtr.selection.plots import plot_error_projections, plot_pool_distribution
@@ -16,13 +17,17 @@ from lightning_vtr.selection.projection import (
     top_bins,
     view_scores,
 )
+from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.random_selector import RandomSelector
+from lightning_vtr.selection.viat import VIATSelector
 
 __all__ = [
     "ErrorGuidedSelector",
+    "MVTNSelector",
     "NatureSelector",
     "RandomSelector",
     "SelectionContext",
+    "VIATSelector",
     "ViewSelector",
     "ViewpointPool",
     "error_projection",
@@ -32,6 +37,7 @@ __all__ = [
     "plot_pool_distribution",
     "sample_around_bins",
     "select_views",
+    "soft_error_projection",
     "top_bins",
     "view_scores",
 ]
