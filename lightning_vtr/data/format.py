@@ -1,9 +1,16 @@
-"""The ShapeNet-VTR on-disk format (``docs/dataset_format.md``): paths, atomic writes, metadata and scanning."""
+"""The ShapeNet-VTR on-disk format (``docs/dataset_format.md``): paths, atomic writes, metadata and scanning.
+
+The builder writes through these helpers and the DataModule reads through them, so the two cannot
+disagree on a path or a field. Every reader validates what it reads and raises
+:class:`DatasetFormatError` with a message naming the file.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,12 +20,18 @@ import numpy as np
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "SHAPENET_SYNSETS",
+    "SPLITS",
     "VIEW_SETS",
     "DatasetFormatError",
     "ObjectRecord",
+    "atomic_write_bytes",
     "atomic_write_json",
+    "dataset_summary",
+    "image_path",
     "load_metadata",
     "object_dir",
+    "read_object",
     "read_object_json",
     "scan_dataset",
 ]
@@ -26,6 +39,24 @@ __all__ = [
 FORMAT_NAME = "lightning_vtr.shapenet_vtr"
 FORMAT_VERSION = 1
 VIEW_SETS = ("aligned", "hemispherical", "spherical")
+SPLITS = ("train", "val", "test")
+
+#: The 13 ShapeNetCore synsets of 3D-R2N2 / Pix2Vox / ShapeNet-VTR and the category names used for them.
+SHAPENET_SYNSETS: dict[str, str] = {
+    "02691156": "airplane",
+    "02828884": "bench",
+    "02933112": "cabinet",
+    "02958343": "car",
+    "03001627": "chair",
+    "03211117": "display",
+    "03636649": "lamp",
+    "03691459": "speaker",
+    "04090263": "rifle",
+    "04256520": "sofa",
+    "04379243": "table",
+    "04401088": "telephone",
+    "04530566": "watercraft",
+}
 
 
 class DatasetFormatError(ValueError):
@@ -34,15 +65,17 @@ class DatasetFormatError(ValueError):
 
 @dataclass
 class ObjectRecord:
-    """One object of a dataset, whatever its layout.
+    """One object of a dataset, whatever its layout (ShapeNet-VTR or ShapeNetRendering).
 
     Attributes:
         category: category name.
         object_id: id within the category.
         split: ``"train"``, ``"val"`` or ``"test"``.
-        voxel_path: its binvox file (in the package frame, +Z up).
+        voxel_path: its binvox file.
         mesh_path: its normalised mesh, when the layout has one.
-        views: view-set name -> (image paths, ``(N, 2)`` (yaw, pitch) degrees).
+        views: view-set name -> (image paths, ``(N, 2)`` (yaw, pitch) in degrees).
+        voxel_up_axis: the up axis of the frame ``voxel_path`` was made in: ``"z"`` for files this package
+            writes, ``"y"`` for ShapeNetVox32; pass it to :func:`lightning_vtr.data.binvox.read_binvox`.
     """
 
     category: str
@@ -51,74 +84,197 @@ class ObjectRecord:
     voxel_path: Path
     mesh_path: Path | None
     views: dict[str, tuple[list[Path], np.ndarray]] = field(default_factory=dict)
+    voxel_up_axis: str = "z"
+
+    @property
+    def key(self) -> str:
+        """``"<category>/<object_id>"``, the key of ``metadata.json["objects"]``."""
+        return f"{self.category}/{self.object_id}"
+
+
+# ------------------------------------------------------------------------------------------ writing
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` so that readers see the old file or the whole new one, never a part.
+
+    The temporary file lives in the destination directory (``os.replace`` is atomic only within one
+    file system) and has a unique name, so concurrent writers (shards) never share one.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_json(path: str | Path, payload: Any) -> None:
-    """Write JSON so that readers see the old file or the whole new one, never a part."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(payload, indent=1))
-    os.replace(tmp, path)
+    """Write ``payload`` as JSON atomically (see :func:`atomic_write_bytes`)."""
+    atomic_write_bytes(path, json.dumps(payload, indent=1).encode())
+
+
+# ------------------------------------------------------------------------------------------ paths
 
 
 def object_dir(root: str | Path, category: str, object_id: str) -> Path:
+    """``<root>/objects/<category>/<object_id>``."""
     return Path(root) / "objects" / category / object_id
 
 
-def read_object_json(directory: str | Path) -> dict:
-    path = Path(directory) / "object.json"
+def image_path(directory: str | Path, view_set: str, index: int) -> Path:
+    """``<object dir>/<view_set>/<index:02d>.png``."""
+    return Path(directory) / view_set / f"{index:02d}.png"
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
+    except OSError as err:
         raise DatasetFormatError(f"Cannot read {path}: {err}") from err
+    except json.JSONDecodeError as err:
+        raise DatasetFormatError(f"{path} is not valid JSON: {err}") from err
+
+
+def _check_views(views: Any, source: Path, view_sets: tuple[str, ...] | list[str]) -> dict[str, np.ndarray]:
+    if not isinstance(views, Mapping):
+        raise DatasetFormatError(f"{source}: 'views' must map view-set names to viewpoint lists, got {type(views).__name__}")
+    out = {}
+    for name in view_sets:
+        if name not in views:
+            raise DatasetFormatError(f"{source}: view set {name!r} is missing; it has {sorted(views)}")
+        vp = np.asarray(views[name], dtype=np.float64)
+        if vp.ndim != 2 or vp.shape[1] != 2 or not np.isfinite(vp).all():
+            raise DatasetFormatError(f"{source}: view set {name!r} must be a list of finite [yaw, pitch] pairs, got shape {vp.shape}")
+        out[name] = vp
+    return out
+
+
+def read_object_json(directory: str | Path) -> dict:
+    """Read and check ``<object dir>/object.json`` (category, object_id and the three view sets)."""
+    path = Path(directory) / "object.json"
+    info = _read_json(path)
+    missing = [k for k in ("category", "object_id", "views") if k not in info]
+    if missing:
+        raise DatasetFormatError(f"{path} lacks the fields {missing}")
+    _check_views(info["views"], path, list(info["views"]))
+    return info
 
 
 def load_metadata(root: str | Path) -> dict:
-    """Read and validate ``<root>/metadata.json``."""
+    """Read and validate ``<root>/metadata.json``.
+
+    Raises:
+        DatasetFormatError: the file is missing (the message says how to build or finish the dataset),
+            is not JSON, is of another format or of a newer version than this package reads.
+    """
     path = Path(root) / "metadata.json"
     if not path.is_file():
         hint = (
-            "the build has not finished: re-run `lightning-vtr build-dataset` (or `--finalize` after sharded builds)"
+            "the build has not finished: re-run `lightning-vtr build-dataset` with the same options "
+            "(or `lightning-vtr build-dataset ROOT --finalize` once every shard is done)"
             if (Path(root) / "objects").is_dir()
-            else "build one with `lightning-vtr build-dataset OUT`"
+            else "build one with `lightning-vtr build-dataset ROOT`"
         )
         raise DatasetFormatError(f"{path} does not exist: {root} is not a complete ShapeNet-VTR dataset; {hint}.")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise DatasetFormatError(f"{path} is not valid JSON: {err}") from err
-    if meta.get("format") != FORMAT_NAME:
-        raise DatasetFormatError(f"{path}: format is {meta.get('format')!r}, expected {FORMAT_NAME!r}")
-    if int(meta.get("version", -1)) > FORMAT_VERSION or int(meta.get("version", -1)) < 1:
-        raise DatasetFormatError(
-            f"{path}: format version {meta.get('version')!r}; this lightning_vtr reads versions 1..{FORMAT_VERSION}"
-        )
+    meta = _read_json(path)
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise DatasetFormatError(f"{path}: format is {found!r}, expected {FORMAT_NAME!r}")
+    version = meta.get("version")
+    if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise DatasetFormatError(f"{path}: format version {version!r}; this lightning_vtr reads versions 1..{FORMAT_VERSION}")
+    missing = [k for k in ("objects", "view_sets", "resolution", "image_size") if k not in meta]
+    if missing:
+        raise DatasetFormatError(f"{path} lacks the fields {missing}")
     return meta
 
 
-def scan_dataset(root: str | Path) -> list[ObjectRecord]:
-    """All objects of a complete dataset as :class:`ObjectRecord` s (order of ``metadata.json``)."""
+def _record(root: Path, key: str, info: Mapping, view_sets: list[str], source: Path) -> ObjectRecord:
+    category, sep, object_id = key.partition("/")
+    if not sep or not category or not object_id:
+        raise DatasetFormatError(f"{source}: object key {key!r} is not '<category>/<object_id>'")
+    split = info.get("split")
+    if split not in SPLITS:
+        raise DatasetFormatError(f"{source}: object {key!r} has split {split!r}, expected one of {SPLITS}")
+    directory = object_dir(root, category, object_id)
+    viewpoints = _check_views(info.get("views", {}), source, view_sets)
+    views = {name: ([image_path(directory, name, i) for i in range(len(vp))], vp) for name, vp in viewpoints.items()}
+    mesh = directory / "mesh.ply"
+    return ObjectRecord(
+        category=category,
+        object_id=object_id,
+        split=split,
+        voxel_path=directory / "model.binvox",
+        mesh_path=mesh if mesh.is_file() else None,
+        views=views,
+    )
+
+
+def scan_dataset(root: str | Path, *, check_files: bool = False) -> list[ObjectRecord]:
+    """All objects of a complete dataset as :class:`ObjectRecord` s, in the order of ``metadata.json``.
+
+    Args:
+        root: the dataset directory.
+        check_files: also check that every voxel file and image exists (one ``stat`` per file).
+
+    Raises:
+        DatasetFormatError: see :func:`load_metadata`; or a listed file is missing (``check_files``).
+    """
     root = Path(root)
     meta = load_metadata(root)
-    view_sets = meta.get("view_sets", list(VIEW_SETS))
-    records = []
-    for key, info in meta["objects"].items():
-        category, object_id = key.split("/", 1)
-        directory = object_dir(root, category, object_id)
-        views = {}
-        for name in view_sets:
-            viewpoints = np.asarray(info["views"][name], dtype=np.float64).reshape(-1, 2)
-            views[name] = ([directory / name / f"{i:02d}.png" for i in range(len(viewpoints))], viewpoints)
-        mesh = directory / "mesh.ply"
-        records.append(
-            ObjectRecord(
-                category=category,
-                object_id=object_id,
-                split=info["split"],
-                voxel_path=directory / "model.binvox",
-                mesh_path=mesh if mesh.is_file() else None,
-                views=views,
-            )
-        )
+    source = root / "metadata.json"
+    records = [_record(root, key, info, list(meta["view_sets"]), source) for key, info in meta["objects"].items()]
+    if check_files:
+        for r in records:
+            for path in [r.voxel_path, *(p for paths, _ in r.views.values() for p in paths)]:
+                if not path.is_file():
+                    raise DatasetFormatError(f"{path} is listed in {source} but does not exist")
     return records
+
+
+def read_object(root: str | Path, category: str, object_id: str) -> ObjectRecord:
+    """One object of a complete dataset as an :class:`ObjectRecord` (split from ``metadata.json``).
+
+    Raises:
+        DatasetFormatError: the dataset is incomplete or does not list ``<category>/<object_id>``.
+    """
+    root = Path(root)
+    meta = load_metadata(root)
+    key = f"{category}/{object_id}"
+    if key not in meta["objects"]:
+        raise DatasetFormatError(f"{root / 'metadata.json'} lists no object {key!r}")
+    return _record(root, key, meta["objects"][key], list(meta["view_sets"]), root / "metadata.json")
+
+
+def dataset_summary(root: str | Path) -> str:
+    """A table of object counts per category and split, plus the build options and failures."""
+    root = Path(root)
+    meta = load_metadata(root)
+    counts: dict[str, dict[str, int]] = {}
+    for key, info in meta["objects"].items():
+        row = counts.setdefault(key.split("/", 1)[0], dict.fromkeys(SPLITS, 0))
+        row[info["split"]] += 1
+    width = max([len("category"), *map(len, counts)])
+    lines = [
+        f"ShapeNet-VTR dataset {root} (format version {meta['version']})",
+        f"  source {meta.get('source')!r}, {meta['image_size']} px, R={meta['resolution']}, "
+        f"{meta.get('views_per_set')} views per set {list(meta['view_sets'])}, aligned pitch {meta.get('aligned_pitch')} deg",
+        f"  {'category':<{width}}  {'train':>6} {'val':>6} {'test':>6} {'total':>6}",
+    ]
+    for category in sorted(counts):
+        row = counts[category]
+        lines.append(f"  {category:<{width}}  {row['train']:>6} {row['val']:>6} {row['test']:>6} {sum(row.values()):>6}")
+    totals = {s: sum(r[s] for r in counts.values()) for s in SPLITS}
+    lines.append(f"  {'all':<{width}}  {totals['train']:>6} {totals['val']:>6} {totals['test']:>6} {sum(totals.values()):>6}")
+    failed = meta.get("failed", [])
+    if failed:
+        lines.append(f"  {len(failed)} object(s) failed to build; see {root / 'errors.json'}")
+    return "\n".join(lines)
