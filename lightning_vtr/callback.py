@@ -395,6 +395,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     # ------------------------------------------------------------------ logging
     def _log(self, trainer: L.Trainer, record: dict[str, Any], samples: list[GeneratedSample]) -> None:
+        # `trainer.log_dir` broadcasts under DDP: every rank must ask for it, before the rank-0 branch.
+        log_dir = trainer.log_dir or trainer.default_root_dir
         if not trainer.is_global_zero:
             return
         total = len(trainer.datamodule.generated_samples)
@@ -412,7 +414,6 @@ class ErrorGuidedViewAugmentation(L.Callback):
             experiment = getattr(logger, "experiment", None)
             if self.log_images and samples and hasattr(experiment, "add_image"):
                 experiment.add_image("vtr/new_views", _grid(samples[:8]), trainer.global_step, dataformats="HWC")
-        log_dir = trainer.log_dir or trainer.default_root_dir
         if log_dir:
             out = Path(log_dir) / "vtr_selection"
             out.mkdir(parents=True, exist_ok=True)
