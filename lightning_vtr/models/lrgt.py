@@ -22,9 +22,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.vit import Attention, DistilledVisionTransformer, Mlp, load_timm_deit
 
 __all__ = [
+    "LRGT",
     "LRGT_PRESETS",
     "LRGTNetwork",
     "LongRangeGroupingAttention",
@@ -280,9 +282,12 @@ class QueryVoxelDecoder(nn.Module):
 
     Query ``n`` is voxel cell ``(i, j, k)`` of the coarse ``q^3`` grid with ``n = (i q + j) q + k``
     (``i, j, k`` along x, y, z as in :mod:`lightning_vtr.geometry`). Each upsampling stage is
-    ``ConvTranspose3d(k4, s2, p1) -> GroupNorm -> ReLU -> Conv3d(k3) -> GroupNorm -> ReLU``;
-    GroupNorm rather than BatchNorm keeps a sample's prediction independent of its batch,
-    which the view-selection callback relies on when it predicts one object at a time.
+    ``ConvTranspose3d(k4, s2, p1) -> BatchNorm3d -> ReLU -> Conv3d(k3) -> BatchNorm3d -> ReLU``.
+    BatchNorm, as in Pix2Vox's decoder, rather than GroupNorm: at initialisation the queries
+    attend almost uniformly, so an object's identity first arrives as a per-sample offset that
+    is constant over the coarse grid, and GroupNorm's per-sample normalisation removed most of
+    it (an overfitting run on four shapes stalled at the mean shape). In eval mode BatchNorm
+    uses running statistics, so a prediction does not depend on the rest of its batch.
 
     Args:
         dim: token width ``D``.
@@ -307,10 +312,10 @@ class QueryVoxelDecoder(nn.Module):
             stages.append(
                 nn.Sequential(
                     nn.ConvTranspose3d(c_in, c, kernel_size=4, stride=2, padding=1),
-                    nn.GroupNorm(min(8, c), c),
+                    nn.BatchNorm3d(c),
                     nn.ReLU(inplace=True),
                     nn.Conv3d(c, c, kernel_size=3, padding=1),
-                    nn.GroupNorm(min(8, c), c),
+                    nn.BatchNorm3d(c),
                     nn.ReLU(inplace=True),
                 )
             )
@@ -385,3 +390,109 @@ class LRGTNetwork(nn.Module):
         patches = tokens[:, self.encoder.num_prefix_tokens :]  # cls/dist are not used downstream
         patches = patches.reshape(b, v * patches.shape[1], patches.shape[2])
         return self.decoder(self.merger(patches))
+
+
+class LRGT(VoxelReconstructionModule):
+    """LRGT as a LightningModule satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
+
+    ``preset`` picks an architecture from :data:`LRGT_PRESETS` (``"paper"``: DeiT-B encoder,
+    224 px input, about 130 M parameters; ``"tiny"``: 64 px input, 0.5 M parameters, trains on
+    a CPU); any architecture argument left at ``None`` takes the preset's value. Training
+    minimises :func:`dice_loss` with AdamW and a MultiStepLR schedule (milestones in epochs),
+    as published. Any number of views works at train and test time.
+
+    Args:
+        preset: ``"paper"`` or ``"tiny"``.
+        num_views: views per training sample (the protocol's ``num_views``; 3 in the paper).
+        image_size, patch_size, embed_dim, depth, num_heads, grouping_blocks, group_stride,
+        num_merged_tokens, merger_k, decoder_depth, decoder_heads, query_grid,
+        upsample_channels: architecture overrides (see :class:`LRGTNetwork`);
+            ``grouping_blocks`` are 0-based block indices.
+        pretrained_encoder: local timm-format DeiT (distilled) checkpoint loaded into the
+            encoder at construction (see :func:`~lightning_vtr.models.vit.load_timm_deit`);
+            ``None`` keeps the random initialisation.
+        lr: AdamW learning rate (1e-4 published).
+        weight_decay: AdamW weight decay (torch's default; the paper does not state one).
+        milestones: epochs at which the learning rate is multiplied by ``gamma`` ([60, 90], 0.1).
+        gamma: the decay factor.
+        validation_fscore, categories: passed to
+            :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+
+    Example::
+
+        model = LRGT(preset="tiny")
+        probs = model.predict_voxels(torch.randn(2, 3, 3, 64, 64))  # (2, 32, 32, 32)
+    """
+
+    def __init__(
+        self,
+        preset: str = "tiny",
+        num_views: int = 3,
+        image_size: int | None = None,
+        patch_size: int | None = None,
+        embed_dim: int | None = None,
+        depth: int | None = None,
+        num_heads: int | None = None,
+        grouping_blocks: list[int] | None = None,
+        group_stride: int | None = None,
+        num_merged_tokens: int | None = None,
+        merger_k: int | None = None,
+        decoder_depth: int | None = None,
+        decoder_heads: int | None = None,
+        query_grid: int | None = None,
+        upsample_channels: list[int] | None = None,
+        pretrained_encoder: str | None = None,
+        lr: float = 1e-4,
+        weight_decay: float = 0.01,
+        milestones: list[int] | None = None,
+        gamma: float = 0.1,
+        validation_fscore: bool = True,
+        categories: list[str] | None = None,
+    ) -> None:
+        if preset not in LRGT_PRESETS:
+            raise ValueError(f"`preset` must be one of {sorted(LRGT_PRESETS)}, got {preset!r}")
+        config = dict(LRGT_PRESETS[preset])
+        overrides = dict(
+            image_size=image_size,
+            patch_size=patch_size,
+            embed_dim=embed_dim,
+            depth=depth,
+            num_heads=num_heads,
+            grouping_blocks=grouping_blocks,
+            group_stride=group_stride,
+            num_merged_tokens=num_merged_tokens,
+            merger_k=merger_k,
+            decoder_depth=decoder_depth,
+            decoder_heads=decoder_heads,
+            query_grid=query_grid,
+            upsample_channels=upsample_channels,
+        )
+        config.update({k: v for k, v in overrides.items() if v is not None})
+        network = LRGTNetwork(**config)
+        super().__init__(
+            image_size=config["image_size"],
+            num_views=num_views,
+            voxel_resolution=network.voxel_resolution,
+            validation_fscore=validation_fscore,
+            categories=categories,
+        )
+        if lr <= 0:
+            raise ValueError(f"`lr` must be positive, got {lr}")
+        self.save_hyperparameters()
+        self.network = network
+        if pretrained_encoder is not None:
+            self.network.load_pretrained_encoder(pretrained_encoder)
+
+    def reconstruct(self, images: Tensor) -> dict[str, Tensor]:
+        """``{"voxels": (B, R, R, R)}`` probabilities for images ``(B, V, 3, H, W)``."""
+        return {"voxels": self.network(images)}
+
+    def loss(self, outputs: dict[str, Tensor], target: Tensor) -> Tensor:
+        return dice_loss(outputs["voxels"], target)
+
+    def configure_optimizers(self):
+        hp = self.hparams
+        optimizer = torch.optim.AdamW(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
+        milestones = list(hp.milestones) if hp.milestones is not None else [60, 90]
+        scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=milestones, gamma=hp.gamma)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

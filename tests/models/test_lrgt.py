@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from lightning_vtr.models.lrgt import (
+    LRGT,
     LRGT_PRESETS,
     LongRangeGroupingAttention,
     LRGTNetwork,
@@ -220,3 +221,87 @@ def test_pretrained_encoder_loads_into_grouping_blocks():
     block = preset["grouping_blocks"][0]
     assert torch.equal(net.encoder.blocks[block].attn.qkv.weight, state[f"blocks.{block}.attn.qkv.weight"])
     assert not net.encoder.blocks[block].attn.signature.weight.any()
+
+
+def _shapes(r: int) -> torch.Tensor:
+    """Three solid shapes ``(3, r, r, r)``: cube, upright cylinder, flat slab."""
+    c = (torch.arange(r) + 0.5) / r - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    return torch.stack(
+        [
+            (x.abs() < 0.3) & (y.abs() < 0.3) & (z.abs() < 0.3),
+            (x**2 + y**2 < 0.2**2) & (z.abs() < 0.4),
+            (x.abs() < 0.4) & (y.abs() < 0.1) & (z.abs() < 0.25),
+        ]
+    ).float()
+
+
+def test_lightning_module_protocol_and_errors():
+    from lightning_vtr.protocol import check_reconstruction_model
+
+    model = LRGT(preset="tiny", num_views=2)
+    check_reconstruction_model(model)
+    assert (model.image_size, model.num_views, model.voxel_resolution) == (64, 2, 32)
+    assert model.hparams.preset == "tiny" and model.hparams.lr == 1e-4
+    small = LRGT(preset="tiny", image_size=32, patch_size=4, upsample_channels=[16, 8])
+    assert (small.image_size, small.voxel_resolution) == (32, 16)
+    opt = small.configure_optimizers()
+    assert isinstance(opt["optimizer"], torch.optim.AdamW)
+    assert opt["lr_scheduler"]["scheduler"].milestones == {60: 1, 90: 1}
+    with pytest.raises(ValueError, match="`preset` must be one of"):
+        LRGT(preset="huge")
+    with pytest.raises(ValueError, match="32x32"):
+        small.predict_voxels(torch.randn(1, 3, 3, 64, 64))
+
+
+@pytest.fixture
+def one_thread():
+    """Run single-threaded: on 2 shared cores, 2 threads per process oversubscribe badly (10x slower)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.slow
+def test_overfits_a_handful_of_objects_with_a_trainer(one_thread):
+    import lightning as L
+    from torch.utils.data import DataLoader
+
+    # The tiny preset at 32 px in, 16^3 out keeps this test to seconds on 2 shared cores.
+    voxels = _shapes(16)
+    n = len(voxels)
+    # Fixed distinct images per object: its silhouettes along x, y and z as the three views.
+    silhouettes = torch.stack([voxels.amax(dim=d) for d in (1, 2, 3)], dim=1)
+    images = F.interpolate(silhouettes, size=32)[:, :, None].expand(n, 3, 3, 32, 32) * 2 - 1
+    # ... tinted with a colour per object, like the distinct textures of real objects.
+    images = images * torch.eye(3)[:, None, :, None, None].add(0.5)
+    data = [{"images": images[i], "voxels": voxels[i], "category": "shape", "object_id": str(i)} for i in range(n)]
+    # Seeds 1-3 all reach IoU 1.0 with this recipe; seed 0 leaves the cube stuck near IoU 0.3
+    # (a local minimum of the Dice loss, which has no factor 2 and so a flat optimum).
+    torch.manual_seed(1)
+    model = LRGT(
+        preset="tiny",
+        image_size=32,
+        patch_size=4,
+        upsample_channels=[16, 8],
+        lr=2e-3,
+        milestones=[220],
+        validation_fscore=False,
+    )
+    trainer = L.Trainer(
+        max_epochs=300,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+    )
+    trainer.fit(model, DataLoader(data, batch_size=n))
+    model.eval()
+    with torch.no_grad():
+        pred = model.predict_voxels(images) >= 0.4
+    gt = voxels.bool()
+    iou = (pred & gt).sum((1, 2, 3)) / (pred | gt).sum((1, 2, 3))
+    assert (iou >= 0.9).all(), iou
