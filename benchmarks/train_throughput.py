@@ -15,11 +15,13 @@ from collections.abc import Callable
 import torch
 
 from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.lrgt import LRGT
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 
 #: name -> factory of a model to benchmark (a VoxelReconstructionModule with ``configure_optimizers``).
 MODELS: dict[str, Callable[[], VoxelReconstructionModule]] = {
     "pix2vox-tiny": lambda: Pix2VoxPlusPlus(preset="tiny"),
+    "lrgt-tiny": lambda: LRGT(preset="tiny"),
 }
 
 
