@@ -28,6 +28,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import trimesh
 
+from lightning_vtr.data.mesh import normalize_mesh
+
 __all__ = ["CATEGORIES", "make_object", "object_id", "object_variant"]
 
 _SECTIONS = 16  # cylinder facets: enough for a 32^3 grid and 256 px renders, cheap to render
@@ -99,7 +101,7 @@ def _legs(rng: np.random.Generator, half_x: float, half_y: float, z_top: float, 
 # Categories. Each builder returns (variant name, parts).
 # --------------------------------------------------------------------------------------------
 
-_Builder = Callable[[np.random.Generator], "tuple[str, list[trimesh.Trimesh]]"]
+_Builder = Callable[[np.random.Generator], tuple[str, list[trimesh.Trimesh]]]
 
 
 def _chair(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
@@ -495,10 +497,7 @@ def _rng(category: str, index: int, seed: int) -> np.random.Generator:
 def _build(category: str, index: int, seed: int) -> tuple[str, trimesh.Trimesh]:
     _check_args(category, index)
     variant, parts = _BUILDERS[category](_rng(category, index, seed))
-    mesh = trimesh.util.concatenate(parts)
-    from lightning_vtr.data.mesh import normalize_mesh
-
-    return variant, normalize_mesh(mesh)
+    return variant, normalize_mesh(trimesh.util.concatenate(parts))
 
 
 def make_object(category: str, index: int, seed: int = 0) -> trimesh.Trimesh:
