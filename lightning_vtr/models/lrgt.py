@@ -479,6 +479,9 @@ class LRGT(VoxelReconstructionModule):
         if lr <= 0:
             raise ValueError(f"`lr` must be positive, got {lr}")
         self.save_hyperparameters()
+        # Record the resolved architecture, not the None overrides: checkpoints then describe the
+        # model fully, and a DataModule's `image_size` hparam agrees with ours when Lightning merges them.
+        self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in config.items()})
         self.network = network
         if pretrained_encoder is not None:
             self.network.load_pretrained_encoder(pretrained_encoder)

@@ -305,3 +305,17 @@ def test_overfits_a_handful_of_objects_with_a_trainer(one_thread):
     gt = voxels.bool()
     iou = (pred & gt).sum((1, 2, 3)) / (pred | gt).sum((1, 2, 3))
     assert (iou >= 0.9).all(), iou
+
+
+def test_checkpoint_round_trip_records_the_resolved_architecture(tmp_path):
+    model = LRGT(preset="tiny", embed_dim=32, num_heads=2)
+    assert model.hparams.image_size == 64 and model.hparams.grouping_blocks == [1, 3]
+    path = tmp_path / "lrgt.pt"
+    torch.save({"state_dict": model.state_dict(), "hparams": dict(model.hparams)}, path)
+    saved = torch.load(path, weights_only=False)
+    restored = LRGT(**saved["hparams"])
+    restored.load_state_dict(saved["state_dict"])
+    images = torch.randn(1, 2, 3, 64, 64)
+    model.eval(), restored.eval()
+    with torch.no_grad():
+        assert torch.equal(model.predict_voxels(images), restored.predict_voxels(images))
