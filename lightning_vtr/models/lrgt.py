@@ -478,10 +478,15 @@ class LRGT(VoxelReconstructionModule):
         )
         if lr <= 0:
             raise ValueError(f"`lr` must be positive, got {lr}")
+        # save_hyperparameters() reads the arguments' current values, so resolve them first: the
+        # checkpoint then describes the architecture fully, and the DataModule's `image_size`
+        # hparam agrees with ours when Lightning merges the two for logging.
+        (image_size, patch_size, embed_dim, depth, num_heads, group_stride, num_merged_tokens, merger_k,
+         decoder_depth, decoder_heads, query_grid) = (config[k] for k in (
+            "image_size", "patch_size", "embed_dim", "depth", "num_heads", "group_stride", "num_merged_tokens",
+            "merger_k", "decoder_depth", "decoder_heads", "query_grid"))
+        grouping_blocks, upsample_channels = list(config["grouping_blocks"]), list(config["upsample_channels"])
         self.save_hyperparameters()
-        # Record the resolved architecture, not the None overrides: checkpoints then describe the
-        # model fully, and a DataModule's `image_size` hparam agrees with ours when Lightning merges them.
-        self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in config.items()})
         self.network = network
         if pretrained_encoder is not None:
             self.network.load_pretrained_encoder(pretrained_encoder)

@@ -310,6 +310,7 @@ def test_overfits_a_handful_of_objects_with_a_trainer(one_thread):
 def test_checkpoint_round_trip_records_the_resolved_architecture(tmp_path):
     model = LRGT(preset="tiny", embed_dim=32, num_heads=2)
     assert model.hparams.image_size == 64 and model.hparams.grouping_blocks == [1, 3]
+    assert model._hparams_initial["image_size"] == 64  # what Lightning logs and merges
     path = tmp_path / "lrgt.pt"
     torch.save({"state_dict": model.state_dict(), "hparams": dict(model.hparams)}, path)
     saved = torch.load(path, weights_only=False)
