@@ -162,6 +162,7 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callab
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lightning-vtr", description="View transformation robustness for multi-view 3D reconstruction.")
+    parser.epilog = "Training and testing: `lightning-vtr fit|validate|test --config CONFIG.yaml` (LightningCLI; --help there)."
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (help_text, add_arguments, run) in COMMANDS.items():
         command = sub.add_parser(name, help=help_text)
@@ -172,6 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lightning-vtr`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    if words and words[0] in ("fit", "validate", "test"):
+        from lightning_vtr.lightning_cli import run_lightning_cli
+
+        return run_lightning_cli(None if argv is None else words)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

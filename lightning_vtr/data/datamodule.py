@@ -14,7 +14,6 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader
 
-from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.dataset import (
     GeneratedDataset,
     GeneratedSample,
@@ -22,6 +21,7 @@ from lightning_vtr.data.dataset import (
     VTRDataset,
     dump_index,
     load_rgba,
+    load_voxels,
     write_generated_sample,
 )
 from lightning_vtr.data.format import ObjectRecord
@@ -145,7 +145,6 @@ class VTRDataModule(L.LightningDataModule):
             records = [r for r in records if r.category in self._category_filter]
         # A fixed order makes every process (and every resumed run) index objects identically.
         self._records = sorted(records, key=lambda r: (r.category, r.object_id))
-        self._voxel_paths = {(r.category, r.object_id): r.voxel_path for r in self._records}
         self._by_key = {(r.category, r.object_id): r for r in self._records}
 
     @property
@@ -189,7 +188,7 @@ class VTRDataModule(L.LightningDataModule):
         base.epoch = self._epoch()
         if not self._generated:
             return base
-        generated = GeneratedDataset(self._generated, self.generated_dir, self._voxel_paths, self.transform)
+        generated = GeneratedDataset(self._generated, self.generated_dir, self._by_key, self.transform)
         return ConcatDataset([base, generated])
 
     def _loader(self, dataset: torch.utils.data.Dataset, shuffle: bool) -> DataLoader:
@@ -226,7 +225,7 @@ class VTRDataModule(L.LightningDataModule):
 
     def object_voxels(self, record: ObjectRecord) -> torch.Tensor:
         """``(R, R, R)`` float occupancy of one object."""
-        return torch.from_numpy(read_binvox(record.voxel_path).astype(np.float32))
+        return load_voxels(record)
 
     def eval_item(self, record: ObjectRecord, view_set: str = "aligned", seed: int = 0) -> dict:
         """A model-ready item of ``n_views`` views of ``record`` chosen as a fixed function of ``seed``."""
@@ -263,7 +262,7 @@ class VTRDataModule(L.LightningDataModule):
         directory = self.generated_dir
         new = []
         for sample in samples:
-            if (sample.category, sample.object_id) not in self._voxel_paths:
+            if (sample.category, sample.object_id) not in self._by_key:
                 raise KeyError(f"add_samples: unknown object {sample.category}/{sample.object_id}")
             sample_dir = directory / f"{self._next_sample_id:07d}_{sample.category}_{sample.object_id}"
             entry = write_generated_sample(sample, sample_dir)

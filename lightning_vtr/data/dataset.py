@@ -29,6 +29,7 @@ __all__ = [
     "ImageTransform",
     "VTRDataset",
     "load_rgba",
+    "load_voxels",
     "write_generated_sample",
 ]
 
@@ -43,6 +44,12 @@ def load_rgba(path: str | Path) -> np.ndarray:
             return np.asarray(img.convert("RGBA"))
     except (OSError, ValueError) as err:
         raise OSError(f"Cannot read image {path}: {err}") from err
+
+
+def load_voxels(record: ObjectRecord) -> Tensor:
+    """``(R, R, R)`` float occupancy of an object, in the package frame whatever its file's up axis."""
+    up_axis = getattr(record, "voxel_up_axis", "z")
+    return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis).astype(np.float32))
 
 
 class ImageTransform:
@@ -147,7 +154,7 @@ class VTRDataset(Dataset):
         images = np.stack([load_rgba(paths[i]) for i in chosen])
         return {
             "images": self.transform(images),
-            "voxels": torch.from_numpy(read_binvox(rec.voxel_path).astype(np.float32)),
+            "voxels": load_voxels(rec),
             "viewpoints": torch.as_tensor(np.asarray(viewpoints)[chosen], dtype=torch.float32),
             "category": rec.category,
             "object_id": rec.object_id,
@@ -215,12 +222,12 @@ class GeneratedDataset(Dataset):
         self,
         entries: Sequence[dict],
         directory: Path,
-        voxel_paths: dict[tuple[str, str], Path],
+        records: dict[tuple[str, str], ObjectRecord],
         transform: ImageTransform | None = None,
     ) -> None:
         self.entries = list(entries)
         self.directory = Path(directory)
-        self.voxel_paths = voxel_paths
+        self.records = records
         self.transform = transform or ImageTransform()
 
     def __len__(self) -> int:
@@ -230,10 +237,9 @@ class GeneratedDataset(Dataset):
         entry = self.entries[index]
         sample_dir = self.directory / entry["dir"]
         images = np.stack([load_rgba(sample_dir / name) for name in entry["images"]])
-        voxel_path = self.voxel_paths[(entry["category"], entry["object_id"])]
         return {
             "images": self.transform(images),
-            "voxels": torch.from_numpy(read_binvox(voxel_path).astype(np.float32)),
+            "voxels": load_voxels(self.records[(entry["category"], entry["object_id"])]),
             "viewpoints": torch.as_tensor(entry["viewpoints"], dtype=torch.float32),
             "category": entry["category"],
             "object_id": entry["object_id"],
