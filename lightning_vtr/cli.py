@@ -9,6 +9,7 @@ exit with status 2; argparse's own usage errors exit with 2 as well.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -151,12 +152,66 @@ def _run_dataset_info(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------ report
+
+
+def _add_report(parser: argparse.ArgumentParser) -> None:
+    from lightning_vtr.report import ReportConfig, STRATEGIES
+
+    defaults = ReportConfig()
+    parser.description = (
+        "Pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on Aligned / "
+        "Hemispherical / Spherical and write report.md (the paper's Table 1 and ablations), results.csv and "
+        "report.png into --out. A killed report re-run skips every finished run."
+    )
+    parser.add_argument("--model", choices=["pix2vox", "lrgt"], default=defaults.model, help="reconstruction model (default pix2vox)")
+    parser.add_argument("--preset", default=defaults.preset, help="model preset (default tiny)")
+    parser.add_argument("--data", default=None, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
+    parser.add_argument("--out", default=defaults.out, help=f"output directory (default {defaults.out})")
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(defaults.seeds), help="seeds; several give mean ± std (default 0)")
+    parser.add_argument("--pretrain-epochs", type=_positive, default=defaults.pretrain_epochs, help=f"epochs on Aligned (default {defaults.pretrain_epochs})")
+    parser.add_argument("--finetune-epochs", type=_positive, default=defaults.finetune_epochs, help=f"fine-tuning epochs per strategy (default {defaults.finetune_epochs})")
+    parser.add_argument("--strategies", type=_csv, default=list(STRATEGIES), help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)")
+    parser.add_argument("--no-ablations", action="store_true", help="skip the K, pool and single-view ablations")
+    parser.add_argument("--fraction", type=float, default=defaults.fraction, help=f"share of training objects searched per epoch (default {defaults.fraction})")
+    parser.add_argument("--batch-size", type=_positive, default=defaults.batch_size, help=f"batch size (default {defaults.batch_size})")
+    parser.add_argument("--accelerator", default=defaults.accelerator, help="Trainer accelerator (default auto)")
+    parser.add_argument("--devices", default=defaults.devices, help="Trainer devices (default 1)")
+
+
+def _run_report(args: argparse.Namespace) -> int:
+    from lightning_vtr.report import ABLATIONS, ReportConfig, run_report
+
+    devices = int(args.devices) if str(args.devices).isdigit() else args.devices
+    config = ReportConfig(
+        model=args.model,
+        preset=args.preset,
+        data=args.data,
+        out=args.out,
+        seeds=args.seeds,
+        pretrain_epochs=args.pretrain_epochs,
+        finetune_epochs=args.finetune_epochs,
+        strategies=args.strategies,
+        ablations=() if args.no_ablations else ABLATIONS,
+        fraction=args.fraction,
+        batch_size=args.batch_size,
+        accelerator=args.accelerator,
+        devices=devices,
+        command=args._command_line,
+    )
+    result = run_report(config)
+    print(result["markdown"])
+    print("Wrote " + ", ".join(str(p) for p in result["paths"].values()))
+    return 0
+
+
 # ------------------------------------------------------------------------------------------ dispatcher
 
 #: name -> (help, add_arguments(parser), run(args) -> exit status).
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "build-dataset": ("build a ShapeNet-VTR dataset (procedural, ShapeNetCore or a mesh folder)", _add_build_dataset, _run_build_dataset),
     "dataset-info": ("summarise a ShapeNet-VTR dataset", _add_dataset_info, _run_dataset_info),
+    "report": ("run the paper's comparison and ablations; write Table 1, a CSV and a chart", _add_report, _run_report),
 }
 
 
@@ -180,6 +235,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_lightning_cli(None if argv is None else words)
     parser = build_parser()
     args = parser.parse_args(argv)
+    args._command_line = shlex.join(["lightning-vtr", *words])  # shown in reports
     try:
         return int(args._run(args))
     except (ValueError, FileNotFoundError, RuntimeError) as err:

@@ -19,7 +19,16 @@ import torch
 
 from lightning_vtr.data.datamodule import VTRDataModule
 
-__all__ = ["ExperimentConfig", "MODEL_CLASSES", "evaluate", "make_model", "make_strategy", "run_strategy", "pretrain"]
+__all__ = [
+    "ExperimentConfig",
+    "MODEL_CLASSES",
+    "evaluate",
+    "make_datamodule",
+    "make_model",
+    "make_strategy",
+    "run_strategy",
+    "pretrain",
+]
 
 
 def _model_classes() -> dict[str, type]:
@@ -46,6 +55,10 @@ class ExperimentConfig:
         fraction: share of training objects searched per epoch by the callback.
         accelerator, devices, precision: passed to the Trainer.
         out: where runs are written.
+        embedded: options of the embedded procedural dataset (``data=None``).
+        model_kwargs: extra arguments of the model class.
+        trainer_kwargs: extra ``L.Trainer`` arguments of every fit and test (e.g. ``limit_train_batches``);
+            they override this module's defaults, except ``devices=1`` of the evaluation.
     """
 
     model: str = "pix2vox"
@@ -64,6 +77,7 @@ class ExperimentConfig:
     out: str = "runs/vtr"
     embedded: dict[str, Any] = field(default_factory=dict)
     model_kwargs: dict[str, Any] = field(default_factory=dict)
+    trainer_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 def make_model(config: ExperimentConfig) -> L.LightningModule:
@@ -73,10 +87,11 @@ def make_model(config: ExperimentConfig) -> L.LightningModule:
     return classes[config.model](preset=config.preset, **config.model_kwargs)
 
 
-def make_datamodule(config: ExperimentConfig, model: L.LightningModule) -> VTRDataModule:
+def make_datamodule(config: ExperimentConfig, model: L.LightningModule, n_views: int | None = None) -> VTRDataModule:
+    """The experiment's datamodule; ``n_views`` ``None`` takes the model's (tests with another count need it)."""
     return VTRDataModule(
         config.data,
-        n_views=model.num_views,
+        n_views=n_views or model.num_views,
         image_size=config.image_size or model.image_size,
         batch_size=config.batch_size,
         num_workers=config.num_workers,
@@ -86,13 +101,12 @@ def make_datamodule(config: ExperimentConfig, model: L.LightningModule) -> VTRDa
 
 
 def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: list | None = None) -> L.Trainer:
-    return L.Trainer(
+    kwargs: dict[str, Any] = dict(
         max_epochs=epochs,
         accelerator=config.accelerator,
         devices=config.devices,
         precision=config.precision,
         default_root_dir=str(run_dir),
-        callbacks=callbacks or [],
         reload_dataloaders_every_n_epochs=1,
         logger=L.pytorch.loggers.CSVLogger(str(run_dir), name="", version=""),
         enable_checkpointing=True,
@@ -100,20 +114,22 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
         num_sanity_val_steps=0,
         deterministic=False,
     )
+    kwargs.update(config.trainer_kwargs)
+    return L.Trainer(callbacks=callbacks or [], **kwargs)
 
 
 def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConfig, run_dir: Path) -> dict:
     """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries)."""
     from lightning_vtr.reporting import results_from_test_output
 
-    trainer = L.Trainer(
-        accelerator=config.accelerator,
-        devices=1,
-        default_root_dir=str(run_dir),
-        logger=False,
-        enable_model_summary=False,
+    kwargs: dict[str, Any] = dict(
+        accelerator=config.accelerator, default_root_dir=str(run_dir), logger=False, enable_model_summary=False,
         enable_progress_bar=False,
     )
+    kwargs.update(config.trainer_kwargs)
+    # One process: a DistributedSampler would pad the test set with duplicates and bias the means.
+    kwargs["devices"] = 1
+    trainer = L.Trainer(**kwargs)
     return results_from_test_output(trainer.test(model, datamodule=dm, verbose=False))
 
 
@@ -136,11 +152,27 @@ def pretrain(config: ExperimentConfig) -> Path:
     return ckpt
 
 
-def make_strategy(name: str, config: ExperimentConfig, synthesizer: Any = None, **kwargs: Any) -> L.Callback | None:
-    """The callback for a view strategy name (``"none"`` -> ``None``)."""
+def make_strategy(
+    name: str,
+    config: ExperimentConfig,
+    synthesizer: Any = None,
+    selector_kwargs: dict[str, Any] | None = None,
+    callback_kwargs: dict[str, Any] | None = None,
+) -> L.Callback | None:
+    """The callback for a view strategy name (``"none"`` -> ``None``).
+
+    Args:
+        name: ``"none"``, ``"error_guided"``, ``"random"``, ``"nature"``, ``"viat"`` or ``"mvtn"``.
+        config: supplies ``fraction`` and ``seed`` of the callback.
+        synthesizer: the callback's synthesizer (``None``: mesh rendering).
+        selector_kwargs: arguments of the selector class (e.g. ``{"k": 15}`` for error-guided).
+        callback_kwargs: further arguments of
+            :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` (e.g. ``{"use_pool": False}``).
+    """
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.selection import ErrorGuidedSelector, NatureSelector, RandomSelector
 
+    kwargs = dict(selector_kwargs or {})
     selectors: dict[str, Callable[[], Any]] = {
         "error_guided": lambda: ErrorGuidedSelector(**kwargs),
         "random": lambda: RandomSelector(**kwargs),
@@ -157,9 +189,8 @@ def make_strategy(name: str, config: ExperimentConfig, synthesizer: Any = None, 
         return None
     if name not in selectors:
         raise ValueError(f"Unknown view strategy {name!r}; choose from {['none', *sorted(selectors)]}")
-    return ErrorGuidedViewAugmentation(
-        selector=selectors[name](), synthesizer=synthesizer, fraction=config.fraction, seed=config.seed
-    )
+    options = {"fraction": config.fraction, "seed": config.seed, **(callback_kwargs or {})}
+    return ErrorGuidedViewAugmentation(selector=selectors[name](), synthesizer=synthesizer, **options)
 
 
 def run_strategy(
@@ -170,8 +201,15 @@ def run_strategy(
     run_name: str | None = None,
     callback: L.Callback | None = None,
     synthesizer: Any = None,
+    selector_kwargs: dict[str, Any] | None = None,
+    callback_kwargs: dict[str, Any] | None = None,
 ) -> dict:
-    """Fine-tune the pretrained model with one view strategy and test it; cached in ``results.json``."""
+    """Fine-tune the pretrained model with one view strategy and test it; cached in ``results.json``.
+
+    The run lives in ``<config.out>/<run_name or name>``; its final weights in ``checkpoints/last.ckpt``.
+    Without ``callback``, :func:`make_strategy` builds it from ``name``, ``synthesizer``,
+    ``selector_kwargs`` and ``callback_kwargs``.
+    """
     run_dir = Path(config.out) / (run_name or name)
     result_file = run_dir / "results.json"
     if result_file.is_file():
@@ -181,7 +219,7 @@ def run_strategy(
     model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
     dm = make_datamodule(config, model)
     if callback is None:
-        callback = make_strategy(name, config, synthesizer)
+        callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs)
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
     trainer = _trainer(config, run_dir, config.finetune_epochs, [c for c in (callback, checkpoints) if c is not None])
     last = run_dir / "checkpoints" / "last.ckpt"

@@ -1,0 +1,208 @@
+"""`lightning-vtr report` / run_report: tables equal the runs' results, files, resume, multi-seed spread, CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import lightning as L
+import pytest
+
+import lightning_vtr.experiment as experiment
+from lightning_vtr import cli
+from lightning_vtr.report import ABLATIONS, STRATEGIES, ReportConfig, _plan, _table, run_report
+
+VIEW_SETS = ("aligned", "hemispherical", "spherical")
+
+
+def _parse_tables(markdown: str) -> dict[str, tuple[list[str], dict[str, list[str]]]]:
+    """``{section title: (header cells, {row title: cells})}`` of every pipe table under a ``##`` title."""
+    tables, title = {}, None
+    for line in markdown.splitlines():
+        if line.startswith("## "):
+            title = line[3:]
+        elif line.startswith("|") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            if title not in tables:
+                tables[title] = (cells, {})
+            else:
+                tables[title][1][cells[0]] = cells[1:]
+    return tables
+
+
+def _pct(value: float) -> str:
+    return f"{100 * value:.2f}"
+
+
+@pytest.fixture
+def counters(monkeypatch):
+    """Counts Trainer.fit / Trainer.test calls and records run_strategy's arguments."""
+    counts = {"fit": 0, "test": 0, "runs": []}
+    fit, test, run_strategy = L.Trainer.fit, L.Trainer.test, experiment.run_strategy
+
+    def counting_fit(self, *args, **kwargs):
+        counts["fit"] += 1
+        return fit(self, *args, **kwargs)
+
+    def counting_test(self, *args, **kwargs):
+        counts["test"] += 1
+        return test(self, *args, **kwargs)
+
+    def recording_run_strategy(name, config, pretrained, **kwargs):
+        counts["runs"].append((name, kwargs["run_name"], kwargs["selector_kwargs"], kwargs["callback_kwargs"]))
+        return run_strategy(name, config, pretrained, **kwargs)
+
+    monkeypatch.setattr(L.Trainer, "fit", counting_fit)
+    monkeypatch.setattr(L.Trainer, "test", counting_test)
+    monkeypatch.setattr(experiment, "run_strategy", recording_run_strategy)
+    return counts
+
+
+def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_dataset, tmp_path, counters):
+    config = ReportConfig(
+        data=str(tiny_dataset),
+        out=str(tmp_path / "report"),
+        seeds=[0],
+        pretrain_epochs=1,
+        finetune_epochs=2,  # epoch 0 ends with one search, so the callback really runs
+        strategies=["none", "error_guided"],
+        ablations=["k", "single_view"],
+        k_values=[15, 30],
+        fraction=0.15,
+        batch_size=8,
+        accelerator="cpu",
+        trainer_kwargs={"limit_train_batches": 1, "limit_val_batches": 1, "enable_progress_bar": False},
+        callback_kwargs={"progress_bar": False},
+    )
+    result = run_report(config)
+    out = tmp_path / "report"
+    seed_dir = out / "seed_0"
+
+    # 1 pretraining + none + error_guided (K = 30) + K = 15: four fits; three fine-tunes, two single-view tests.
+    assert counters["fit"] == 4
+    assert counters["test"] == 3 + 2
+    assert [r[:3] for r in counters["runs"]] == [
+        ("none", "none", {}),
+        ("error_guided", "error_guided", {}),
+        ("error_guided", "error_guided_k15", {"k": 15}),
+    ]
+    assert all(r[3] == {"progress_bar": False} for r in counters["runs"])
+    searched = json.loads((seed_dir / "error_guided_k15" / "results.json").read_text())
+    assert searched["generated_samples"] == round(0.15 * 21)
+
+    # Files.
+    for name in ("report.md", "results.csv", "report.png", "timing.json"):
+        assert (out / name).is_file(), name
+    assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    runs = {
+        name: json.loads((seed_dir / name / "results.json").read_text())
+        for name in ("none", "error_guided", "error_guided_k15", "single_view_none", "single_view_error_guided")
+    }
+    assert runs["single_view_none"]["n_views"] == 1 and runs["single_view_none"]["source_run"] == "none"
+
+    # Markdown: Table 1 layout, values = results.json in percent.
+    markdown = (out / "report.md").read_text()
+    assert markdown == result["markdown"]
+    assert "Command: `lightning-vtr report" in markdown and "Total wall time:" in markdown
+    tables = _parse_tables(markdown)
+    header, rows = tables["Table 1: robustness to view transformations (%, test set)"]
+    assert header == ["Method"] + [f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "F-score")]
+    assert list(rows) == ["None-VTR", "Ours"]
+    for title, run in (("None-VTR", "none"), ("Ours", "error_guided")):
+        res = runs[run]["results"]
+        assert rows[title] == [_pct(res[s][m]) for s in VIEW_SETS for m in ("iou@0.4", "fscore")]
+    header, rows = tables["Ablation: bin interval K (mIoU, %)"]
+    assert header == ["Method", "Aligned mIoU", "Hemispherical mIoU", "Spherical mIoU"]
+    assert rows == {
+        "K = 15": [_pct(runs["error_guided_k15"]["results"][s]["iou@0.4"]) for s in VIEW_SETS],
+        "K = 30": [_pct(runs["error_guided"]["results"][s]["iou@0.4"]) for s in VIEW_SETS],
+    }
+    _, rows = tables["Ablation: single-view input (%)"]
+    assert rows["Ours (1 view)"] == [
+        _pct(runs["single_view_error_guided"]["results"][s][m]) for s in VIEW_SETS for m in ("iou@0.4", "fscore")
+    ]
+    assert "Ablation: viewpoint pool (%)" not in tables
+
+    # CSV: one row per run x view set, the same values unrounded.
+    with (out / "results.csv").open() as f:
+        rows_csv = list(csv.DictReader(f))
+    assert len(rows_csv) == 5 * 3
+    for row in rows_csv:
+        payload = runs[row["run"]]
+        assert row["strategy"] == ("none" if row["run"].endswith("none") else "error_guided")
+        assert row["seed"] == "0"
+        assert float(row["iou@0.4"]) == payload["results"][row["view_set"]]["iou@0.4"]
+        assert float(row["fscore"]) == payload["results"][row["view_set"]]["fscore"]
+        assert float(row["train_seconds"]) == pytest.approx(payload["train_seconds"], abs=1e-3)
+
+    # A re-run (a killed report restarted) trains and tests nothing again and writes the same tables.
+    mtimes = {p: p.stat().st_mtime_ns for p in seed_dir.rglob("results.json")}
+    counters["fit"] = counters["test"] = 0
+    again = run_report(config)
+    assert counters["fit"] == 0 and counters["test"] == 0
+    assert {p: p.stat().st_mtime_ns for p in seed_dir.rglob("results.json")} == mtimes
+    assert _parse_tables(again["markdown"]) == tables
+    assert len(json.loads((out / "timing.json").read_text())["invocations"]) == 2
+
+
+def test_several_seeds_print_mean_and_sample_std():
+    payloads = {
+        "none": {
+            0: {"results": {"aligned": {"iou@0.4": 0.5, "fscore": 0.2}}},
+            1: {"results": {"aligned": {"iou@0.4": 0.7, "fscore": 0.4}}},
+        }
+    }
+    _, rows = _parse_tables("## t\n" + _table({"None-VTR": "none"}, payloads, ("iou@0.4", "fscore"), [0, 1]))["t"]
+    # mean 60, sample std sqrt(((50-60)^2 + (70-60)^2) / 1) = 14.14; missing sets print "-".
+    assert rows["None-VTR"] == ["60.00 ± 14.14", "30.00 ± 14.14", "-", "-", "-", "-"]
+    _, rows = _parse_tables("## t\n" + _table({"None-VTR": "none"}, payloads, ("iou@0.4",), [1]))["t"]
+    assert rows["None-VTR"] == ["70.00", "-", "-"]
+
+
+def test_plan_adds_the_runs_the_ablations_need():
+    names = [r.name for r in _plan(ReportConfig(strategies=["viat"]))]
+    assert names == [
+        "none", "viat", "error_guided", "error_guided_k15", "error_guided_k60", "error_guided_k90",
+        "error_guided_no_pool", "single_view_none", "single_view_error_guided",
+    ]
+    no_pool = [r for r in _plan(ReportConfig()) if r.name == "error_guided_no_pool"][0]
+    assert no_pool.callback_kwargs == {"use_pool": False}
+    assert [r.name for r in _plan(ReportConfig(strategies=["mvtn", "random"], ablations=[]))] == ["random", "mvtn"]
+    kwargs = {r.name: r.selector_kwargs for r in _plan(ReportConfig(selector_kwargs={"error_guided": {"mode": "soft"}}))}
+    assert kwargs["error_guided_k60"] == {"mode": "soft", "k": 60} and kwargs["error_guided"] == {"mode": "soft"}
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"strategies": ["ours"]}, "strategies"),
+        ({"ablations": ["dropout"]}, "ablations"),
+        ({"k_values": [15, 25]}, "k_values"),
+        ({"seeds": []}, "seeds"),
+        ({"finetune_epochs": 0}, "finetune_epochs"),
+    ],
+)
+def test_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ReportConfig(**kwargs)
+
+
+def test_cli_builds_the_report_config(monkeypatch):
+    seen = {}
+
+    def fake_run_report(config):
+        seen["config"] = config
+        return {"markdown": "table", "paths": {}}
+
+    monkeypatch.setattr("lightning_vtr.report.run_report", fake_run_report)
+    argv = ["report", "--seeds", "0", "1", "--strategies", "none,viat", "--no-ablations", "--fraction", "0.1",
+            "--pretrain-epochs", "3", "--out", "somewhere"]
+    assert cli.main(argv) == 0
+    config = seen["config"]
+    assert (config.seeds, config.strategies, config.ablations) == ([0, 1], ["none", "viat"], [])
+    assert (config.fraction, config.pretrain_epochs, config.finetune_epochs, config.out) == (0.1, 3, 10, "somewhere")
+    assert config.command == "lightning-vtr " + " ".join(argv)
+    assert cli.main(["report"]) == 0
+    assert seen["config"].strategies == list(STRATEGIES) and seen["config"].ablations == list(ABLATIONS)
+    assert not math.isnan(seen["config"].fraction)
