@@ -70,9 +70,11 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         ablations=["k", "single_view"],
         k_values=[15, 30],
         fraction=0.15,
-        batch_size=8,
+        batch_size=4,
         accelerator="cpu",
-        trainer_kwargs={"limit_train_batches": 1, "limit_val_batches": 1, "enable_progress_bar": False},
+        trainer_kwargs={
+            "limit_train_batches": 1, "limit_val_batches": 1, "limit_test_batches": 1, "enable_progress_bar": False,
+        },
         callback_kwargs={"progress_bar": False},
     )
     result = run_report(config)
@@ -206,3 +208,21 @@ def test_cli_builds_the_report_config(monkeypatch):
     assert cli.main(["report"]) == 0
     assert seen["config"].strategies == list(STRATEGIES) and seen["config"].ablations == list(ABLATIONS)
     assert not math.isnan(seen["config"].fraction)
+
+
+def test_make_strategy_passes_selector_and_callback_arguments():
+    from lightning_vtr.selection import ErrorGuidedSelector, VIATSelector
+
+    config = experiment.ExperimentConfig(fraction=0.2, seed=3)
+    callback = experiment.make_strategy(
+        "error_guided", config, selector_kwargs={"k": 15}, callback_kwargs={"use_pool": False, "fraction": 0.5}
+    )
+    assert isinstance(callback.selector, ErrorGuidedSelector)
+    assert callback.selector.k == 15 and callback.selector.sigma == 2.5  # K / 6 degrees
+    assert callback.pool is None  # the pool ablation
+    assert callback.fraction == 0.5 and callback.seed == 3  # callback_kwargs override the config
+    viat = experiment.make_strategy("viat", config, selector_kwargs={"population": 4, "iterations": 2})
+    assert isinstance(viat.selector, VIATSelector) and (viat.selector.population, viat.selector.iterations) == (4, 2)
+    assert viat.fraction == 0.2 and experiment.make_strategy("none", config) is None
+    with pytest.raises(ValueError, match="Unknown view strategy 'ours'"):
+        experiment.make_strategy("ours", config)
