@@ -226,3 +226,57 @@ def test_make_strategy_passes_selector_and_callback_arguments():
     assert viat.fraction == 0.2 and experiment.make_strategy("none", config) is None
     with pytest.raises(ValueError, match="Unknown view strategy 'ours'"):
         experiment.make_strategy("ours", config)
+
+
+def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatch):
+    """Stubbed runs with distinct values per (run, seed, view set, metric): each cell must find its own."""
+    import statistics
+
+    import lightning_vtr.report as report
+
+    names = ["none", "nature", "random", "viat", "mvtn", "error_guided", "error_guided_k15", "error_guided_k60",
+             "error_guided_k90", "error_guided_no_pool", "single_view_none", "single_view_error_guided"]
+
+    def value(run: str, seed: int, view_set: str, metric: str) -> float:
+        return (names.index(run) * 7 + VIEW_SETS.index(view_set) * 3 + (metric == "fscore") * 50 + seed * seed * 5) / 200
+
+    def payload(run: str, seed: int) -> dict:
+        res = {v: {m: value(run, seed, v, m) for m in ("iou@0.4", "fscore")} for v in VIEW_SETS}
+        return {"results": res, "train_seconds": 10.0 * names.index(run) + seed}
+
+    monkeypatch.setattr(experiment, "pretrain", lambda config: tmp_path / "pretrained.ckpt")
+    monkeypatch.setattr(experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed))
+    monkeypatch.setattr(report, "_single_view", lambda run, exp, source: payload(run.name, exp.seed))
+    result = run_report(ReportConfig(out=str(tmp_path / "r"), seeds=[0, 2]))
+
+    def cell(run: str, view_set: str, metric: str) -> str:
+        a, b = (100 * value(run, s, view_set, metric) for s in (0, 2))
+        return f"{statistics.fmean([a, b]):.2f} ± {statistics.stdev([a, b]):.2f}"
+
+    both = [(v, m) for v in VIEW_SETS for m in ("iou@0.4", "fscore")]
+    tables = _parse_tables(result["markdown"])
+    _, rows = tables["Table 1: robustness to view transformations (%, test set)"]
+    titles = {"None-VTR": "none", "Nature": "nature", "Random": "random", "VIAT": "viat", "MVTN": "mvtn", "Ours": "error_guided"}
+    assert list(rows) == list(titles)
+    assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in titles.items()}
+    _, rows = tables["Ablation: bin interval K (mIoU, %)"]
+    k_runs = {"K = 15": "error_guided_k15", "K = 30": "error_guided", "K = 60": "error_guided_k60", "K = 90": "error_guided_k90"}
+    assert rows == {t: [cell(r, v, "iou@0.4") for v in VIEW_SETS] for t, r in k_runs.items()}
+    _, rows = tables["Ablation: viewpoint pool (%)"]
+    pool_runs = {"Ours (with pool)": "error_guided", "Ours (without pool)": "error_guided_no_pool"}
+    assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in pool_runs.items()}
+    _, rows = tables["Ablation: single-view input (%)"]
+    single_runs = {"None-VTR (1 view)": "single_view_none", "Ours (1 view)": "single_view_error_guided"}
+    assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in single_runs.items()}
+
+    with (tmp_path / "r" / "results.csv").open() as f:
+        rows_csv = list(csv.DictReader(f))
+    assert len(rows_csv) == len(names) * 2 * 3
+    assert sorted({r["run"] for r in rows_csv}) == sorted(names)
+    for row in rows_csv:
+        seed = int(row["seed"])
+        assert float(row["iou@0.4"]) == value(row["run"], seed, row["view_set"], "iou@0.4")
+        assert float(row["fscore"]) == value(row["run"], seed, row["view_set"], "fscore")
+        assert float(row["train_seconds"]) == 10.0 * names.index(row["run"]) + seed
+        assert row["strategy"] == (row["run"] if row["run"] in titles.values() else
+                                   "none" if row["run"] == "single_view_none" else "error_guided")
