@@ -25,9 +25,10 @@ def parse_args(argv: list[str] | None = None, model: str = "pix2vox") -> argpars
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
     p.add_argument("--data", default=None, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
-    p.add_argument("--pretrain-epochs", type=int, default=12)
-    p.add_argument("--finetune-epochs", type=int, default=12)
-    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--pretrain-epochs", type=int, default=20)
+    p.add_argument("--finetune-epochs", type=int, default=14)
+    # Small batches: the embedded dataset has 210 training objects, and the tiny model needs optimizer steps.
+    p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--num-workers", type=int, default=0)
     p.add_argument("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
     p.add_argument("--seed", type=int, default=0)

@@ -112,6 +112,7 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
         enable_checkpointing=True,
         enable_model_summary=False,
         num_sanity_val_steps=0,
+        log_every_n_steps=5,
         deterministic=False,
     )
     kwargs.update(config.trainer_kwargs)

@@ -32,6 +32,20 @@ VIEW_SETS = ("aligned", "hemispherical", "spherical")
 _STATE_VERSION = 1
 
 
+class _EpochSeededSampler(torch.utils.data.Sampler[int]):
+    """A random permutation that depends only on ``seed``: the same order at every ``iter()``."""
+
+    def __init__(self, length: int, seed: int) -> None:
+        self.length = length
+        self.seed = seed
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __iter__(self):
+        return iter(torch.randperm(self.length, generator=torch.Generator().manual_seed(self.seed)).tolist())
+
+
 class VTRDataModule(L.LightningDataModule):
     """Serves a ShapeNet-VTR dataset: Aligned/train for training, Aligned/val for validation, and the
     test split of every view set as named test dataloaders (in ``test_view_sets`` order).
@@ -192,14 +206,14 @@ class VTRDataModule(L.LightningDataModule):
         return ConcatDataset([base, generated])
 
     def _loader(self, dataset: torch.utils.data.Dataset, shuffle: bool) -> DataLoader:
-        # Shuffling seeded by (seed, epoch): the data order is a function of the epoch alone, so a run
-        # resumed from a checkpoint trains on exactly the batches an uninterrupted run would.
-        generator = torch.Generator().manual_seed(self.seed * 100_003 + self._epoch()) if shuffle else None
+        # Shuffling seeded by (seed, epoch) afresh at every iter(): the data order is a function of the epoch
+        # alone, however often Lightning iterates the loader, so a resumed run trains on exactly the batches
+        # an uninterrupted run would. (Under DDP Lightning swaps in a DistributedSampler, seeded likewise.)
+        sampler = _EpochSeededSampler(len(dataset), self.seed * 100_003 + self._epoch()) if shuffle else None
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
-            shuffle=shuffle,
-            generator=generator,
+            sampler=sampler,
             num_workers=self.num_workers,
             persistent_workers=False,
             drop_last=False,

@@ -177,3 +177,12 @@ def test_two_process_ddp_sees_identical_datasets(tiny_dataset, tmp_path):
     assert r0["len"] == r1["len"] == 21 + 3
     assert r0["digest"] == r1["digest"]
     assert sorted(r0["indices"] + r1["indices"]) == list(range(24))
+
+
+def test_train_order_is_the_same_at_every_iteration_of_an_epoch(tiny_dataset):
+    dm = _dm(tiny_dataset, batch_size=21)
+    loader = dm.train_dataloader()
+    first = next(iter(loader))["object_id"]
+    assert next(iter(loader))["object_id"] == first  # Lightning may iterate a loader more than once
+    assert sorted(first) == sorted(r.object_id for r in dm.split_records("train"))
+    assert first != [r.object_id for r in dm.split_records("train")]  # but it is shuffled
