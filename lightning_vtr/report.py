@@ -106,7 +106,7 @@ class ReportConfig:
     ablations: Sequence[str] = ABLATIONS
     k_values: Sequence[int] = (15, 30, 60, 90)
     fraction: float = 0.05
-    batch_size: int = 16
+    batch_size: int = 8
     num_workers: int = 0
     image_size: int | None = None
     accelerator: str = "auto"
