@@ -318,7 +318,11 @@ class ErrorGuidedViewAugmentation(L.Callback):
         return _Selected(index, record.category, record.object_id, views.detach().cpu().numpy(), error)
 
     def _request(self, dm: Any, record: Any, targets: Tensor | None = None) -> SynthesisRequest:
-        images, viewpoints = dm.object_views(record, self.source_view_set)
+        if self.synthesizer.needs_source_images:
+            images, viewpoints = dm.object_views(record, self.source_view_set)
+        else:  # e.g. mesh rendering: skip decoding every source image of the object
+            _, viewpoints = record.views[self.source_view_set]
+            images = np.zeros((0, 0, 0, 4), np.uint8)
         return SynthesisRequest(
             object_id=record.object_id,
             category=record.category,

@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
+from PIL import Image
 from torch import nn
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
@@ -134,7 +135,7 @@ def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path)
     # The images are renders of the object's mesh at exactly those viewpoints.
     rec = dm.record(samples[0]["category"], samples[0]["object_id"])
     expected = RenderSynthesizer(image_size=32).synthesize([callback._request(dm, rec, torch.tensor(samples[0]["viewpoints"]))])[0]
-    got = np.stack([np.asarray(__import__("PIL.Image").Image.open(dm.generated_dir / samples[0]["dir"] / n)) for n in samples[0]["images"]])
+    got = np.stack([np.asarray(Image.open(dm.generated_dir / samples[0]["dir"] / n)) for n in samples[0]["images"]])
     assert np.array_equal(got, expected)
     # With an empty prediction the error is the ground truth: the logged error is the objects' occupancy.
     record = json.loads((Path(tmp_path) / "vtr_selection" / "epoch_0000.json").read_text())
@@ -170,7 +171,7 @@ def _fit(root, tmp_path, epochs, ckpt=None):
 def _contents(dm):
     out = []
     for s in dm.generated_samples:
-        images = [np.asarray(__import__("PIL.Image").Image.open(dm.generated_dir / s["dir"] / n)) for n in s["images"]]
+        images = [np.asarray(Image.open(dm.generated_dir / s["dir"] / n)) for n in s["images"]]
         out.append((s["epoch"], s["category"], s["object_id"], np.round(s["viewpoints"], 4).tolist(), np.stack(images).tobytes()))
     return out
 
@@ -240,3 +241,21 @@ def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path)
     digests = [json.loads(line) for line in (tmp_path / "digests.jsonl").read_text().splitlines()]
     assert [d[0][0] for d in digests] == [21, 25, 29]  # epochs 0, 1, 2 see 0, 4, 8 generated samples
     assert all(d[0] == d[1] for d in digests)  # rank 0 and rank 1 serve identical data
+
+
+def test_source_images_are_decoded_only_for_synthesizers_that_read_them(tiny_dataset, tmp_path):
+    from lightning_vtr.synthesis.base import Synthesizer
+
+    class NeedsImages(Synthesizer):
+        def synthesize(self, requests):
+            return [np.zeros((len(r.target_viewpoints), 8, 8, 4), np.uint8) for r in requests]
+
+    dm = _dm(tiny_dataset, tmp_path)
+    dm.setup("fit")
+    rec = dm.split_records("train")[0]
+    rendered = _callback()._request(dm, rec, torch.zeros(3, 2))
+    diffused = _callback(synthesizer=NeedsImages())._request(dm, rec, torch.zeros(3, 2))
+    assert rendered.source_images.shape[0] == 0  # the mesh renderer never looks at them
+    assert diffused.source_images.shape == (8, 64, 64, 4)  # all 8 views of the tiny dataset's aligned set
+    assert torch.equal(rendered.source_viewpoints, diffused.source_viewpoints)
+    assert torch.allclose(diffused.source_viewpoints[:, 1], torch.full((8,), 30.0))

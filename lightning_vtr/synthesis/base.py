@@ -42,6 +42,9 @@ class Synthesizer(abc.ABC):
     """
 
     image_size: int = 256
+    #: Whether ``synthesize`` reads ``SynthesisRequest.source_images``. Callers skip decoding the source views
+    #: when it does not (the render synthesizer works from the mesh alone).
+    needs_source_images: bool = True
 
     @abc.abstractmethod
     def synthesize(self, requests: list[SynthesisRequest]) -> list[np.ndarray]:

@@ -140,6 +140,10 @@ class CachedSynthesizer(Synthesizer):
     def image_size(self) -> int:  # type: ignore[override]
         return self.synthesizer.image_size
 
+    @property
+    def needs_source_images(self) -> bool:  # type: ignore[override]
+        return self.synthesizer.needs_source_images
+
     def config_key(self) -> str:
         return self.synthesizer.config_key()
 

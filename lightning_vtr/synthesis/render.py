@@ -29,6 +29,8 @@ class RenderSynthesizer(Synthesizer):
         ValueError: at synthesis time, for a request without a mesh path (name the object).
     """
 
+    needs_source_images = False
+
     def __init__(self, image_size: int = 128, max_cached_meshes: int = 64, **renderer_kwargs: Any) -> None:
         if image_size <= 0:
             raise ValueError(f"`image_size` must be positive, got {image_size}")
