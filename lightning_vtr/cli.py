@@ -174,6 +174,7 @@ def _add_report(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strategies", type=_csv, default=list(STRATEGIES), help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)")
     parser.add_argument("--no-ablations", action="store_true", help="skip the K, pool and single-view ablations")
     parser.add_argument("--fraction", type=float, default=defaults.fraction, help=f"share of training objects searched per epoch (default {defaults.fraction})")
+    parser.add_argument("--finetune-lr", choices=["cosine", "constant"], default=defaults.finetune_lr, help=f"fine-tuning learning-rate schedule: annealed to 0 or the model's own (default {defaults.finetune_lr})")
     parser.add_argument("--batch-size", type=_positive, default=defaults.batch_size, help=f"batch size (default {defaults.batch_size})")
     parser.add_argument("--accelerator", default=defaults.accelerator, help="Trainer accelerator (default auto)")
     parser.add_argument("--devices", default=defaults.devices, help="Trainer devices (default 1)")
@@ -194,6 +195,7 @@ def _run_report(args: argparse.Namespace) -> int:
         strategies=args.strategies,
         ablations=() if args.no_ablations else ABLATIONS,
         fraction=args.fraction,
+        finetune_lr=args.finetune_lr,
         batch_size=args.batch_size,
         accelerator=args.accelerator,
         devices=devices,

@@ -7,6 +7,7 @@ directory and is skipped when that file exists, so a killed experiment re-run re
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import torch
 from lightning_vtr.data.datamodule import VTRDataModule
 
 __all__ = [
+    "CosineFineTuning",
     "ExperimentConfig",
     "MODEL_CLASSES",
     "evaluate",
@@ -56,6 +58,10 @@ class ExperimentConfig:
         accelerator, devices, precision: passed to the Trainer.
         out: where runs are written.
         embedded: options of the embedded procedural dataset (``data=None``).
+        finetune_lr: learning-rate schedule of fine-tuning, the same for every strategy: ``"cosine"``
+            anneals each parameter group's rate from the model's own value to 0 over ``finetune_epochs``
+            (:class:`CosineFineTuning`), so the tested weights are not one noisy step of a constant rate;
+            ``"constant"`` keeps the model's scheduler.
         model_kwargs: extra arguments of the model class.
         trainer_kwargs: extra ``L.Trainer`` arguments of every fit and test (e.g. ``limit_train_batches``);
             they override this module's defaults, except ``devices=1`` of the evaluation.
@@ -74,10 +80,40 @@ class ExperimentConfig:
     accelerator: str = "auto"
     devices: int | str = 1
     precision: str = "32-true"
+    finetune_lr: str = "cosine"
     out: str = "runs/vtr"
     embedded: dict[str, Any] = field(default_factory=dict)
     model_kwargs: dict[str, Any] = field(default_factory=dict)
     trainer_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.finetune_lr not in ("cosine", "constant"):
+            raise ValueError(f"`finetune_lr` must be 'cosine' or 'constant', got {self.finetune_lr!r}")
+
+
+class CosineFineTuning(L.Callback):
+    """Sets every parameter group's learning rate to ``base * (1 + cos(pi * epoch / epochs)) / 2`` at each
+    training epoch's start (epoch 0 at the model's rate, the last one near 0), whatever the optimizer.
+
+    The base rate is the group's ``initial_lr`` (written by any torch scheduler) or its ``lr`` when the
+    optimizer is first seen, so a resumed run continues the same curve. The model's own scheduler still
+    steps, but this callback overrides its value at every epoch start.
+    """
+
+    def __init__(self, epochs: int) -> None:
+        if epochs < 1:
+            raise ValueError(f"`epochs` must be >= 1, got {epochs}")
+        self.epochs = epochs
+
+    def factor(self, epoch: int) -> float:
+        return 0.5 * (1.0 + math.cos(math.pi * min(epoch, self.epochs) / self.epochs))
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        factor = self.factor(trainer.current_epoch)
+        for optimizer in trainer.optimizers:
+            for group in optimizer.param_groups:
+                group.setdefault("initial_lr", group["lr"])
+                group["lr"] = group["initial_lr"] * factor
 
 
 def make_model(config: ExperimentConfig) -> L.LightningModule:
@@ -143,9 +179,10 @@ def pretrain(config: ExperimentConfig) -> Path:
     L.seed_everything(config.seed, workers=True, verbose=False)
     model = make_model(config)
     dm = make_datamodule(config, model)
-    trainer = _trainer(config, run_dir, config.pretrain_epochs)
+    # The one checkpoint callback, given to the Trainer so that it adds no default one saving twice.
+    checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
+    trainer = _trainer(config, run_dir, config.pretrain_epochs, [checkpoints])
     last = run_dir / "checkpoints" / "last.ckpt"
-    trainer.callbacks.append(L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True))
     trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
     tmp = ckpt.with_suffix(".tmp")
     trainer.save_checkpoint(tmp, weights_only=True)
@@ -222,7 +259,10 @@ def run_strategy(
     if callback is None:
         callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs)
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
-    trainer = _trainer(config, run_dir, config.finetune_epochs, [c for c in (callback, checkpoints) if c is not None])
+    callbacks = [c for c in (callback, checkpoints) if c is not None]
+    if config.finetune_lr == "cosine":
+        callbacks.append(CosineFineTuning(config.finetune_epochs))
+    trainer = _trainer(config, run_dir, config.finetune_epochs, callbacks)
     last = run_dir / "checkpoints" / "last.ckpt"
     start = time.perf_counter()
     trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)

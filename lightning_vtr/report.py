@@ -84,6 +84,8 @@ class ReportConfig:
             ``single_view`` the "none" run, when ``strategies`` lacks them).
         k_values: bin intervals of the K ablation, degrees (each must divide 180).
         fraction: share of training objects searched per epoch by the callback (the paper's 5 %).
+        finetune_lr: fine-tuning learning-rate schedule, ``"cosine"`` (annealed to 0, the default) or
+            ``"constant"`` (see :class:`~lightning_vtr.experiment.ExperimentConfig`).
         batch_size, num_workers, image_size, accelerator, devices, precision: as in
             :class:`~lightning_vtr.experiment.ExperimentConfig`.
         embedded, model_kwargs, trainer_kwargs: passed to every
@@ -106,6 +108,7 @@ class ReportConfig:
     ablations: Sequence[str] = ABLATIONS
     k_values: Sequence[int] = (15, 30, 60, 90)
     fraction: float = 0.05
+    finetune_lr: str = "cosine"
     batch_size: int = 8
     num_workers: int = 0
     image_size: int | None = None
@@ -138,6 +141,8 @@ class ReportConfig:
         bad = [k for k in self.k_values if k <= 0 or 180 % k]
         if bad:
             raise ValueError(f"`k_values` must divide 180 (degrees), got {bad}")
+        if self.finetune_lr not in ("cosine", "constant"):
+            raise ValueError(f"`finetune_lr` must be 'cosine' or 'constant', got {self.finetune_lr!r}")
         for name in ("pretrain_epochs", "finetune_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}")
@@ -192,6 +197,7 @@ def _experiment_config(config: ReportConfig, seed: int) -> Any:
         num_workers=config.num_workers,
         image_size=config.image_size,
         fraction=config.fraction,
+        finetune_lr=config.finetune_lr,
         seed=seed,
         accelerator=config.accelerator,
         devices=config.devices,
@@ -291,6 +297,8 @@ def _equivalent_command(config: ReportConfig) -> str:
     words += ["--out", config.out, "--seeds", *map(str, config.seeds)]
     words += ["--pretrain-epochs", str(config.pretrain_epochs), "--finetune-epochs", str(config.finetune_epochs)]
     words += ["--strategies", ",".join(config.strategies), "--fraction", str(config.fraction)]
+    if config.finetune_lr != "cosine":
+        words += ["--finetune-lr", config.finetune_lr]
     if not config.ablations:
         words.append("--no-ablations")
     return shlex.join(words)
@@ -398,7 +406,8 @@ def run_report(config: ReportConfig) -> dict:
         "",
         f"Budget: {config.model} ({config.preset}) on {config.data or 'the embedded procedural dataset'}; "
         f"seeds {', '.join(map(str, seeds))}; pretraining {config.pretrain_epochs} epochs on Aligned, then "
-        f"{config.finetune_epochs} fine-tuning epochs per strategy; {100 * config.fraction:g} % of training objects "
+        f"{config.finetune_epochs} fine-tuning epochs per strategy ({config.finetune_lr} learning rate); "
+        f"{100 * config.fraction:g} % of training objects "
         f"searched per epoch. Total wall time: {total / 60:.1f} min over {len(timing['invocations'])} invocation(s) "
         f"(this one {wall / 60:.1f} min).",
         "",

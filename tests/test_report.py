@@ -93,6 +93,11 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     searched = json.loads((seed_dir / "error_guided_k15" / "results.json").read_text())
     assert searched["generated_samples"] == round(0.15 * 21)
 
+    # One checkpoint callback per run: no duplicate "-v1" files beside each epoch's checkpoint.
+    for run in ("pretrain", "none", "error_guided"):
+        names = sorted(p.name for p in (seed_dir / run / "checkpoints").iterdir())
+        assert len(names) == 2 and names[1] == "last.ckpt" and names[0].startswith("epoch="), (run, names)
+
     # Files.
     for name in ("report.md", "results.csv", "report.png", "timing.json"):
         assert (out / name).is_file(), name
@@ -183,6 +188,7 @@ def test_plan_adds_the_runs_the_ablations_need():
         ({"k_values": [15, 25]}, "k_values"),
         ({"seeds": []}, "seeds"),
         ({"finetune_epochs": 0}, "finetune_epochs"),
+        ({"finetune_lr": "linear"}, "finetune_lr"),
     ],
 )
 def test_config_rejects_bad_values(kwargs, match):
@@ -199,13 +205,15 @@ def test_cli_builds_the_report_config(monkeypatch):
 
     monkeypatch.setattr("lightning_vtr.report.run_report", fake_run_report)
     argv = ["report", "--seeds", "0", "1", "--strategies", "none,viat", "--no-ablations", "--fraction", "0.1",
-            "--pretrain-epochs", "3", "--out", "somewhere"]
+            "--pretrain-epochs", "3", "--out", "somewhere", "--finetune-lr", "constant"]
     assert cli.main(argv) == 0
     config = seen["config"]
     assert (config.seeds, config.strategies, config.ablations) == ([0, 1], ["none", "viat"], [])
     assert (config.fraction, config.pretrain_epochs, config.finetune_epochs, config.out) == (0.1, 3, 10, "somewhere")
+    assert config.finetune_lr == "constant"
     assert config.command == "lightning-vtr " + " ".join(argv)
     assert cli.main(["report"]) == 0
+    assert seen["config"].finetune_lr == "cosine"
     assert seen["config"].strategies == list(STRATEGIES) and seen["config"].ablations == list(ABLATIONS)
     assert not math.isnan(seen["config"].fraction)
 

@@ -1,0 +1,101 @@
+"""lightning_vtr.experiment: the fine-tuning learning-rate schedule, fresh and resumed."""
+
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import pytest
+import torch
+
+import lightning_vtr.experiment as experiment
+from lightning_vtr.experiment import CosineFineTuning, ExperimentConfig, run_strategy
+
+
+class _LinearModel(L.LightningModule):
+    """Two parameter groups with different rates and a MultiStepLR that would halve them at epoch 1."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.a = torch.nn.Linear(2, 1)
+        self.b = torch.nn.Linear(2, 1)
+        self.seen: list[tuple[int, float, float]] = []
+
+    def training_step(self, batch, batch_idx):
+        group_a, group_b = self.trainer.optimizers[0].param_groups
+        self.seen.append((self.current_epoch, group_a["lr"], group_b["lr"]))
+        return (self.a(batch[0]) + self.b(batch[0])).pow(2).mean()
+
+    def train_dataloader(self):
+        return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 2)), batch_size=2)
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.Adam([{"params": self.a.parameters(), "lr": 0.1}, {"params": self.b.parameters(), "lr": 0.01}])
+        return [optimizer], [torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=[1], gamma=0.5)]
+
+
+def _trainer(tmp_path, epochs: int) -> L.Trainer:
+    return L.Trainer(
+        max_epochs=epochs, callbacks=[CosineFineTuning(4)], default_root_dir=str(tmp_path), logger=False,
+        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu",
+    )
+
+
+def _expected(epoch: int) -> float:
+    return 0.5 * (1 + math.cos(math.pi * epoch / 4))
+
+
+def test_cosine_fine_tuning_anneals_every_group_from_its_own_rate(tmp_path):
+    model = _LinearModel()
+    _trainer(tmp_path, 4).fit(model)
+    by_epoch = {epoch: (a, b) for epoch, a, b in model.seen}
+    assert sorted(by_epoch) == [0, 1, 2, 3]
+    for epoch, (a, b) in by_epoch.items():
+        # The model's MultiStepLR milestone at epoch 1 is overridden: the curve is the cosine alone.
+        assert a == pytest.approx(0.1 * _expected(epoch)) and b == pytest.approx(0.01 * _expected(epoch))
+    assert by_epoch[2][0] == pytest.approx(0.05)
+
+
+def test_cosine_fine_tuning_resumes_on_the_same_curve(tmp_path):
+    first = _LinearModel()
+    trainer = _trainer(tmp_path, 2)
+    trainer.fit(first)
+    trainer.save_checkpoint(tmp_path / "mid.ckpt")
+    resumed = _LinearModel()
+    _trainer(tmp_path, 4).fit(resumed, ckpt_path=str(tmp_path / "mid.ckpt"))
+    assert {e for e, _, _ in resumed.seen} == {2, 3}
+    for epoch, a, b in resumed.seen:
+        assert a == pytest.approx(0.1 * _expected(epoch)) and b == pytest.approx(0.01 * _expected(epoch))
+
+
+def test_cosine_fine_tuning_rejects_zero_epochs():
+    with pytest.raises(ValueError, match="epochs"):
+        CosineFineTuning(0)
+
+
+@pytest.mark.parametrize("schedule, expected", [("cosine", 1), ("constant", 0)])
+def test_run_strategy_uses_the_configured_schedule(tmp_path, monkeypatch, schedule, expected):
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_fit(self, *args, **kwargs):
+        seen["callbacks"] = [c for c in self.callbacks if isinstance(c, CosineFineTuning)]
+        raise Stop
+
+    model = experiment.make_model(ExperimentConfig(preset="tiny"))
+    torch.save({"state_dict": model.state_dict()}, tmp_path / "pre.ckpt")
+    monkeypatch.setattr(L.Trainer, "fit", fake_fit)
+    monkeypatch.setattr(experiment, "make_datamodule", lambda config, model: None)
+    config = ExperimentConfig(out=str(tmp_path / "runs"), finetune_epochs=7, finetune_lr=schedule, accelerator="cpu")
+    with pytest.raises(Stop):
+        run_strategy("none", config, tmp_path / "pre.ckpt")
+    assert len(seen["callbacks"]) == expected
+    if expected:
+        assert seen["callbacks"][0].epochs == 7
+
+
+def test_config_rejects_an_unknown_schedule():
+    with pytest.raises(ValueError, match="finetune_lr.*'step'"):
+        ExperimentConfig(finetune_lr="step")
