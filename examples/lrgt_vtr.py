@@ -36,6 +36,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (published: 1e-4)")
     p.add_argument("--deit", default=None, help="local timm DeiT-B distilled checkpoint for the paper preset")
     p.add_argument("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
+    p.add_argument("--finetune-lr", default="cosine", choices=["cosine", "constant"],
+                   help="fine-tuning learning rate: annealed to 0, or the model's own schedule")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--accelerator", default="auto")
     p.add_argument("--devices", default="1")
@@ -60,6 +62,7 @@ def main(argv: list[str] | None = None) -> dict:
         batch_size=args.batch_size,
         num_workers=args.num_workers,
         fraction=args.fraction,
+        finetune_lr=args.finetune_lr,
         seed=args.seed,
         accelerator=args.accelerator,
         devices=int(args.devices) if args.devices.isdigit() else args.devices,

@@ -32,6 +32,8 @@ def parse_args(argv: list[str] | None = None, model: str = "pix2vox") -> argpars
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--num-workers", type=int, default=0)
     p.add_argument("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
+    p.add_argument("--finetune-lr", default="cosine", choices=["cosine", "constant"],
+                   help="fine-tuning learning rate: annealed to 0, or the model's own schedule")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--accelerator", default="auto")
     p.add_argument("--devices", default="1")
@@ -56,6 +58,7 @@ def main(argv: list[str] | None = None, model: str = "pix2vox") -> dict:
         batch_size=args.batch_size,
         num_workers=args.num_workers,
         fraction=args.fraction,
+        finetune_lr=args.finetune_lr,
         seed=args.seed,
         accelerator=args.accelerator,
         devices=int(args.devices) if args.devices.isdigit() else args.devices,
