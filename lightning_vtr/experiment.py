@@ -41,6 +41,8 @@ def _model_classes() -> dict[str, type]:
 
 
 MODEL_CLASSES = ("pix2vox", "lrgt")
+#: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
+FINETUNE_LR_SCHEDULES = ("cosine", "constant")
 
 
 @dataclass
@@ -87,8 +89,8 @@ class ExperimentConfig:
     trainer_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.finetune_lr not in ("cosine", "constant"):
-            raise ValueError(f"`finetune_lr` must be 'cosine' or 'constant', got {self.finetune_lr!r}")
+        if self.finetune_lr not in FINETUNE_LR_SCHEDULES:
+            raise ValueError(f"`finetune_lr` must be one of {FINETUNE_LR_SCHEDULES}, got {self.finetune_lr!r}")
 
 
 class CosineFineTuning(L.Callback):
@@ -231,6 +233,15 @@ def make_strategy(
     return ErrorGuidedViewAugmentation(selector=selectors[name](), synthesizer=synthesizer, **options)
 
 
+#: ExperimentConfig fields that say where and on what a run happens, not what it measures.
+_PLACEMENT = frozenset({"out", "accelerator", "devices", "num_workers"})
+
+
+def _comparable(config: ExperimentConfig) -> dict[str, Any]:
+    """``config`` as it reads back from ``results.json``."""
+    return json.loads(json.dumps(asdict(config), default=str))
+
+
 def run_strategy(
     name: str,
     config: ExperimentConfig,
@@ -251,7 +262,17 @@ def run_strategy(
     run_dir = Path(config.out) / (run_name or name)
     result_file = run_dir / "results.json"
     if result_file.is_file():
-        return json.loads(result_file.read_text())
+        cached = json.loads(result_file.read_text())
+        # A cache is only a result of *this* configuration: refuse one written under another. Where the
+        # run lives and what hardware it used do not change what it measures.
+        current, saved = _comparable(config), cached.get("config", {})
+        changed = sorted(k for k in (current.keys() | saved.keys()) - _PLACEMENT if current.get(k) != saved.get(k))
+        if changed:
+            raise ValueError(
+                f"{result_file} was written with another configuration (differs in {changed}); use another `out` "
+                "directory or delete that run to re-train it"
+            )
+        return cached
     L.seed_everything(config.seed, workers=True, verbose=False)
     model = make_model(config)
     model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
@@ -270,7 +291,7 @@ def run_strategy(
     results = evaluate(model, dm, config, run_dir)
     payload = {
         "strategy": name,
-        "config": asdict(config),
+        "config": _comparable(config),
         "train_seconds": train_seconds,
         "generated_samples": len(dm.generated_samples),
         "results": results,

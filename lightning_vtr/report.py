@@ -141,8 +141,10 @@ class ReportConfig:
         bad = [k for k in self.k_values if k <= 0 or 180 % k]
         if bad:
             raise ValueError(f"`k_values` must divide 180 (degrees), got {bad}")
-        if self.finetune_lr not in ("cosine", "constant"):
-            raise ValueError(f"`finetune_lr` must be 'cosine' or 'constant', got {self.finetune_lr!r}")
+        from lightning_vtr.experiment import FINETUNE_LR_SCHEDULES
+
+        if self.finetune_lr not in FINETUNE_LR_SCHEDULES:
+            raise ValueError(f"`finetune_lr` must be one of {FINETUNE_LR_SCHEDULES}, got {self.finetune_lr!r}")
         for name in ("pretrain_epochs", "finetune_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import lightning as L
@@ -99,3 +100,15 @@ def test_run_strategy_uses_the_configured_schedule(tmp_path, monkeypatch, schedu
 def test_config_rejects_an_unknown_schedule():
     with pytest.raises(ValueError, match="finetune_lr.*'step'"):
         ExperimentConfig(finetune_lr="step")
+
+
+def test_run_strategy_refuses_a_cached_result_of_another_configuration(tmp_path):
+    config = ExperimentConfig(out=str(tmp_path), finetune_epochs=3)
+    payload = {"strategy": "none", "config": experiment._comparable(config), "results": {"aligned": {"iou@0.4": 0.5}}}
+    (tmp_path / "none").mkdir()
+    (tmp_path / "none" / "results.json").write_text(json.dumps(payload))
+    missing = tmp_path / "never-read.ckpt"
+    # Same experiment (another device count only): the cache is the answer, nothing is loaded.
+    assert run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, devices=2), missing) == payload
+    with pytest.raises(ValueError, match=r"results.json was written with another configuration .*'finetune_lr'"):
+        run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, finetune_lr="constant"), missing)
