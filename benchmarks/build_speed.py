@@ -50,7 +50,7 @@ def main() -> None:
     import torch
 
     from lightning_vtr.data.builder import EMBEDDED_DEFAULTS
-    from lightning_vtr.render import get_renderer
+    from lightning_vtr.renderer import get_renderer
 
     torch.set_num_threads(1)  # as in a build worker; the comparison is then workers, not threads
     # Open the GL context before timing, so the 1-worker figure is the steady per-object cost.

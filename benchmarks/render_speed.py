@@ -18,7 +18,7 @@ import trimesh
 
 from lightning_vtr.data.mesh import normalize_mesh
 from lightning_vtr.geometry import camera_pose, sample_uniform_viewpoints
-from lightning_vtr.render import DEFAULT_DISTANCE, Renderer, get_renderer
+from lightning_vtr.renderer import DEFAULT_DISTANCE, Renderer, get_renderer
 
 
 def make_mesh(target_faces: int) -> trimesh.Trimesh:

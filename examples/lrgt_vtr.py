@@ -19,8 +19,8 @@ import argparse
 import time
 import warnings
 
-from lightning_vtr.experiment import ExperimentConfig, pretrain, run_strategy
-from lightning_vtr.reporting import format_robustness_table
+from lightning_vtr.experiments.training import ExperimentConfig, pretrain, run_strategy
+from lightning_vtr.experiments.tables import format_robustness_table
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

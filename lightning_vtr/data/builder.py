@@ -246,7 +246,7 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
         from lightning_vtr.data.binvox import write_binvox
         from lightning_vtr.data.mesh import load_mesh, save_mesh
         from lightning_vtr.data.voxelize import voxelize
-        from lightning_vtr.render import get_renderer
+        from lightning_vtr.renderer import get_renderer
 
         if task.kind == "procedural":
             from lightning_vtr.data.procedural import make_object
@@ -472,7 +472,7 @@ def _finalize(out: Path, tasks: list[_Task], errors: dict[str, str], split: Sequ
             for oid in ids:
                 info = read_object_json(object_dir(out, category, oid))
                 objects[f"{category}/{oid}"] = {"split": name, "views": info["views"]}
-    from lightning_vtr.render import DEFAULT_DISTANCE, DEFAULT_YFOV_DEG
+    from lightning_vtr.renderer import DEFAULT_DISTANCE, DEFAULT_YFOV_DEG
 
     atomic_write_json(
         out / "metadata.json",

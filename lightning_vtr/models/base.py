@@ -26,7 +26,7 @@ provides ``forward(images) -> dict`` (checks, then ``reconstruct``), ``predict_v
 Metrics are accumulated in torchmetrics objects (one per view set, created up front) and synced
 across processes at epoch end. Per-category results need the category vocabulary to be identical
 on every process under DDP: pass ``categories`` or let :meth:`setup` take ``datamodule.categories``.
-:func:`lightning_vtr.reporting.results_from_test_output` turns ``trainer.test(...)`` output into
+:func:`lightning_vtr.experiments.tables.results_from_test_output` turns ``trainer.test(...)`` output into
 the nested dict the paper-style table takes.
 """
 

@@ -19,9 +19,11 @@ from lightning_vtr.selection.projection import (
 )
 from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.random_selector import RandomSelector
+from lightning_vtr.selection.registry import SELECTORS, make_selector
 from lightning_vtr.selection.viat import VIATSelector
 
 __all__ = [
+    "SELECTORS",
     "ErrorGuidedSelector",
     "MVTNSelector",
     "NatureSelector",
@@ -32,6 +34,7 @@ __all__ = [
     "ViewpointPool",
     "error_projection",
     "error_volume",
+    "make_selector",
     "nearest_bins",
     "plot_error_projections",
     "plot_pool_distribution",

@@ -23,7 +23,7 @@ class RenderSynthesizer(Synthesizer):
     Args:
         image_size: output side in pixels (the datamodule resizes to the model input anyway).
         max_cached_meshes: how many loaded meshes to keep in memory.
-        renderer_kwargs: passed to :func:`lightning_vtr.render.get_renderer` (camera type, fov, distance).
+        renderer_kwargs: passed to :func:`lightning_vtr.renderer.get_renderer` (camera type, fov, distance).
 
     Raises:
         ValueError: at synthesis time, for a request without a mesh path (name the object).
@@ -54,7 +54,7 @@ class RenderSynthesizer(Synthesizer):
         return mesh
 
     def synthesize(self, requests: list[SynthesisRequest]) -> list[np.ndarray]:
-        from lightning_vtr.render import get_renderer
+        from lightning_vtr.renderer import get_renderer
 
         renderer = get_renderer(self.image_size, **self.renderer_kwargs)
         out = []

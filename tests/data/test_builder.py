@@ -78,7 +78,7 @@ def test_build_writes_the_documented_layout(small):
 def test_voxels_and_images_match_the_object(small):
     from PIL import Image
 
-    from lightning_vtr.render import get_renderer
+    from lightning_vtr.renderer import get_renderer
 
     root, _ = small
     mesh = make_object("chair", 1)

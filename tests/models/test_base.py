@@ -9,7 +9,7 @@ from torch.utils.data import DataLoader
 
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.protocol import ReconstructionModel
-from lightning_vtr.reporting import results_from_test_output
+from lightning_vtr.experiments.tables import results_from_test_output
 
 
 class _PassThrough(VoxelReconstructionModule):

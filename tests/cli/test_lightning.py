@@ -8,7 +8,7 @@ import yaml
 
 from lightning_vtr.cli import main
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "pix2vox_tiny_vtr.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "pix2vox_tiny_vtr.yaml"
 
 
 def test_print_config_resolves_the_callback_and_model(capsys):

@@ -12,7 +12,7 @@ import trimesh
 from lightning_vtr.data.mesh import normalize_mesh
 from lightning_vtr.data.voxelize import voxelize
 from lightning_vtr.geometry import sample_uniform_viewpoints
-from lightning_vtr.render import (
+from lightning_vtr.renderer import (
     DEFAULT_DISTANCE,
     DEFAULT_HALF_EXTENT,
     DEFAULT_YFOV_DEG,
@@ -198,7 +198,7 @@ def test_composite_blends_over_background():
 
 
 def test_renderers_share_one_cached_context():
-    from lightning_vtr import render
+    from lightning_vtr import renderer as render
 
     a, b = get_renderer(24), get_renderer(24)
     assert a is b

@@ -156,7 +156,7 @@ def _run_dataset_info(args: argparse.Namespace) -> int:
 
 
 def _add_report(parser: argparse.ArgumentParser) -> None:
-    from lightning_vtr.report import ReportConfig, STRATEGIES
+    from lightning_vtr.experiments.report import ReportConfig, STRATEGIES
 
     defaults = ReportConfig()
     parser.description = (
@@ -181,7 +181,7 @@ def _add_report(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_report(args: argparse.Namespace) -> int:
-    from lightning_vtr.report import ABLATIONS, ReportConfig, run_report
+    from lightning_vtr.experiments.report import ABLATIONS, ReportConfig, run_report
 
     devices = int(args.devices) if str(args.devices).isdigit() else args.devices
     config = ReportConfig(
@@ -232,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lightning-vtr`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     words = list(sys.argv[1:] if argv is None else argv)
     if words and words[0] in ("fit", "validate", "test"):
-        from lightning_vtr.lightning_cli import run_lightning_cli
+        from lightning_vtr.cli.lightning import run_lightning_cli
 
         return run_lightning_cli(None if argv is None else words)
     parser = build_parser()

@@ -9,9 +9,9 @@ import math
 import lightning as L
 import pytest
 
-import lightning_vtr.experiment as experiment
+import lightning_vtr.experiments.training as experiment
 from lightning_vtr import cli
-from lightning_vtr.report import ABLATIONS, STRATEGIES, ReportConfig, _plan, _table, run_report
+from lightning_vtr.experiments.report import ABLATIONS, STRATEGIES, ReportConfig, _plan, _table, run_report
 
 VIEW_SETS = ("aligned", "hemispherical", "spherical")
 
@@ -203,7 +203,7 @@ def test_cli_builds_the_report_config(monkeypatch):
         seen["config"] = config
         return {"markdown": "table", "paths": {}}
 
-    monkeypatch.setattr("lightning_vtr.report.run_report", fake_run_report)
+    monkeypatch.setattr("lightning_vtr.experiments.report.run_report", fake_run_report)
     argv = ["report", "--seeds", "0", "1", "--strategies", "none,viat", "--no-ablations", "--fraction", "0.1",
             "--pretrain-epochs", "3", "--out", "somewhere", "--finetune-lr", "constant"]
     assert cli.main(argv) == 0
@@ -240,7 +240,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     """Stubbed runs with distinct values per (run, seed, view set, metric): each cell must find its own."""
     import statistics
 
-    import lightning_vtr.report as report
+    import lightning_vtr.experiments.report as report
 
     names = ["none", "nature", "random", "viat", "mvtn", "error_guided", "error_guided_k15", "error_guided_k60",
              "error_guided_k90", "error_guided_no_pool", "single_view_none", "single_view_error_guided"]

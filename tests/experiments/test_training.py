@@ -1,4 +1,4 @@
-"""lightning_vtr.experiment: the fine-tuning learning-rate schedule, fresh and resumed."""
+"""lightning_vtr.experiments.training: the fine-tuning learning-rate schedule, fresh and resumed."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import lightning as L
 import pytest
 import torch
 
-import lightning_vtr.experiment as experiment
-from lightning_vtr.experiment import CosineFineTuning, ExperimentConfig, run_strategy
+import lightning_vtr.experiments.training as experiment
+from lightning_vtr.experiments.training import CosineFineTuning, ExperimentConfig, run_strategy
 
 
 class _LinearModel(L.LightningModule):

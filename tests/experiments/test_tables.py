@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lightning_vtr.reporting import format_robustness_table, results_from_test_output
+from lightning_vtr.experiments.tables import format_robustness_table, results_from_test_output
 
 RESULTS = {
     "Pix2Vox++": {

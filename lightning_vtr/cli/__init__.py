@@ -1,0 +1,7 @@
+"""The ``lightning-vtr`` command line: one module per sub-command, dispatched by :func:`main`."""
+
+from __future__ import annotations
+
+from lightning_vtr.cli.main import main
+
+__all__ = ["main"]

@@ -1,0 +1,105 @@
+"""The paper-style robustness table (Table 1 layout) and the conversion from ``trainer.test`` output.
+
+Results are nested dicts ``{method: {view_set: {metric: value in [0, 1]}}}``; the table prints
+them in percent with rows = methods and columns = Aligned / Hemispherical / Spherical x metrics.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+
+__all__ = ["VIEW_SET_TITLES", "format_robustness_table", "results_from_test_output"]
+
+#: Column groups of the table, in the paper's order, with their printed titles.
+VIEW_SET_TITLES: dict[str, str] = {"aligned": "Aligned", "hemispherical": "Hemispherical", "spherical": "Spherical"}
+_METRIC_TITLES = {"fscore": "F-score"}
+
+
+def _metric_title(name: str) -> str:
+    if name.startswith("iou@"):
+        return "mIoU" if name == "iou@0.4" else f"mIoU@{name[4:]}"
+    return _METRIC_TITLES.get(name, name)
+
+
+def results_from_test_output(outputs: Iterable[Mapping[str, float]], method: str | None = None) -> dict:
+    """Collect ``test/<set>/<metric>`` keys of ``trainer.test(...)`` output into a nested dict.
+
+    Args:
+        outputs: the list of dicts ``trainer.test`` returns (one per test dataloader; they are
+            merged). Per-category keys ``test/<set>/<category>/<metric>`` are kept under
+            ``"<set>/<category>"``; other keys are ignored.
+        method: when given, wrap the result as ``{method: ...}``, ready for
+            :func:`format_robustness_table`.
+
+    Returns:
+        ``{view_set: {metric: value}}`` (or ``{method: {view_set: {metric: value}}}``).
+    """
+    results: dict[str, dict[str, float]] = {}
+    for output in outputs:
+        for key, value in output.items():
+            parts = key.split("/")
+            if len(parts) < 3 or parts[0] != "test":
+                continue
+            group, metric = "/".join(parts[1:-1]), parts[-1]
+            results.setdefault(group, {})[metric] = float(value)
+    return {method: results} if method is not None else results
+
+
+def format_robustness_table(
+    results: Mapping[str, Mapping[str, Mapping[str, float]]],
+    *,
+    metric_names: Sequence[str] = ("iou@0.4", "fscore"),
+    fmt: str = "markdown",
+    view_sets: Sequence[str] = tuple(VIEW_SET_TITLES),
+    digits: int = 2,
+) -> str:
+    """Format ``{method: {view_set: {metric: value}}}`` like the paper's Table 1, values in %.
+
+    Missing values print as ``-``.
+
+    Args:
+        results: values in ``[0, 1]`` per method, view set and metric (e.g. ``iou@0.4``, ``fscore``).
+        metric_names: metrics shown under each view set, in order.
+        fmt: ``"markdown"`` (a pipe table) or ``"text"`` (aligned columns).
+        view_sets: the column groups, in order.
+        digits: decimals of the percentages.
+
+    Returns:
+        The table as a string without a trailing newline.
+
+    Raises:
+        ValueError: if ``fmt`` is unknown.
+
+    Example:
+        >>> print(format_robustness_table({"Pix2Vox++": {"aligned": {"iou@0.4": 0.6463, "fscore": 0.4202}}},
+        ...                               view_sets=("aligned",)))
+        | Method | Aligned mIoU | Aligned F-score |
+        |---|---|---|
+        | Pix2Vox++ | 64.63 | 42.02 |
+    """
+    if fmt not in ("markdown", "text"):
+        raise ValueError(f"`fmt` must be 'markdown' or 'text', got {fmt!r}")
+
+    def cell(value: float | None) -> str:
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return "-"
+        return f"{100 * value:.{digits}f}"
+
+    header = ["Method"] + [
+        f"{VIEW_SET_TITLES.get(s, s)} {_metric_title(m)}" for s in view_sets for m in metric_names
+    ]
+    rows = [
+        [method] + [cell(per_set.get(s, {}).get(m)) for s in view_sets for m in metric_names]
+        for method, per_set in results.items()
+    ]
+    if fmt == "markdown":
+        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(row) + " |" for row in rows]
+        return "\n".join(lines)
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+
+    def line(row: list[str]) -> str:
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))).rstrip()
+
+    return "\n".join([line(header), "  ".join("-" * w for w in widths), *[line(r) for r in rows]])
