@@ -15,11 +15,15 @@ Batches (what :class:`~lightning_vtr.data.VTRDataModule` yields) are dictionarie
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
-from torch import Tensor
+if TYPE_CHECKING:  # this module stays light: dataset build workers import VIEW_SETS without torch
+    from torch import Tensor
 
-__all__ = ["ReconstructionModel", "check_reconstruction_model"]
+__all__ = ["VIEW_SETS", "ReconstructionModel", "check_reconstruction_model"]
+
+#: The paper's three view sets, in table order: training views (a fixed elevation) and the two test sets.
+VIEW_SETS: tuple[str, ...] = ("aligned", "hemispherical", "spherical")
 
 
 @runtime_checkable
