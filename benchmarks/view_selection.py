@@ -114,12 +114,12 @@ def main() -> None:
         for b in range(args.reference_objects):
             reference_scores(predicted[b].numpy(), target[b].numpy(), k)
         reference = args.reference_objects / (time.perf_counter() - start)
-        n_views = (180 // k) * (360 // k)
+        num_views = (180 // k) * (360 // k)
         for threads in args.threads:
             torch.set_num_threads(threads)
             build, ours, ours_best = time_selector(predicted, target, k, args.repeats)
             print(
-                f"{k:>3} {n_views:>5} {threads:>7} {build:>13.2f} {ours:>11.0f} ({ours_best:>4.0f}) "
+                f"{k:>3} {num_views:>5} {threads:>7} {build:>13.2f} {ours:>11.0f} ({ours_best:>4.0f}) "
                 f"{reference:>16.2f} {ours / reference:>8.0f}x",
                 flush=True,
             )

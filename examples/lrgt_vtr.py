@@ -10,41 +10,27 @@ Aligned / Hemispherical / Spherical) for both.
         --data /data/shapenet_vtr --accelerator gpu --devices 4 --pretrain-epochs 100 --finetune-epochs 50
 
 Runs are cached under ``--out``: re-running skips finished runs, and an interrupted run resumes from its
-last checkpoint.
+last checkpoint. The work is :func:`lightning_vtr.experiments.comparison.run_comparison`'s.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 import warnings
 
-from lightning_vtr.experiments.training import ExperimentConfig, pretrain, run_strategy
-from lightning_vtr.experiments.tables import format_robustness_table
+from lightning_vtr.experiments.comparison import add_comparison_arguments, run_comparison
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
-    p.add_argument("--data", default=None, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
-    p.add_argument("--pretrain-epochs", type=int, default=16)
-    p.add_argument("--finetune-epochs", type=int, default=12)
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--num-workers", type=int, default=0)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    add_comparison_arguments(parser, "lrgt")
     # The published 1e-4 assumes a pretrained DeiT-B; the tiny preset trains from scratch in a
     # dozen epochs, where 1e-4 barely moves it (an overfitting test needed 2e-3).
-    p.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (published: 1e-4)")
-    p.add_argument("--deit", default=None, help="local timm DeiT-B distilled checkpoint for the paper preset")
-    p.add_argument("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
-    p.add_argument("--finetune-lr", default="cosine", choices=["cosine", "constant"],
-                   help="fine-tuning learning rate: annealed to 0, or the model's own schedule")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--accelerator", default="auto")
-    p.add_argument("--devices", default="1")
-    p.add_argument("--precision", default="32-true")
-    p.add_argument("--zero123", default=None, help="local Zero-1-to-3 diffusers directory (default: render the meshes)")
-    p.add_argument("--out", default="runs/lrgt_vtr")
-    return p.parse_args(argv)
+    parser.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (published: 1e-4)")
+    parser.add_argument("--deit", default=None, help="local timm DeiT-B distilled checkpoint for the paper preset")
+    return parser.parse_args(argv)
 
 
 # Lightning 2.6 on torch 2.13 warns about a deprecated pytree API at every epoch; it is not ours to fix.
@@ -53,40 +39,7 @@ warnings.filterwarnings("ignore", message=".*treespec.*")
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
-    config = ExperimentConfig(
-        model="lrgt",
-        preset=args.preset,
-        data=args.data,
-        pretrain_epochs=args.pretrain_epochs,
-        finetune_epochs=args.finetune_epochs,
-        batch_size=args.batch_size,
-        num_workers=args.num_workers,
-        fraction=args.fraction,
-        finetune_lr=args.finetune_lr,
-        seed=args.seed,
-        accelerator=args.accelerator,
-        devices=int(args.devices) if args.devices.isdigit() else args.devices,
-        precision=args.precision,
-        out=args.out,
-        model_kwargs={"lr": args.lr, "pretrained_encoder": args.deit},
-    )
-    synthesizer = None
-    if args.zero123:
-        from lightning_vtr.synthesis.zero123 import Zero123Synthesizer
-
-        synthesizer = Zero123Synthesizer.from_pretrained(args.zero123)
-
-    start = time.perf_counter()
-    ckpt = pretrain(config)
-    print(f"pretrained on Aligned: {ckpt} ({time.perf_counter() - start:.0f} s)")
-    runs = {
-        "LRGT (no VTR)": run_strategy("none", config, ckpt),
-        "Ours (LRGT)": run_strategy("error_guided", config, ckpt, synthesizer=synthesizer),
-    }
-    print()
-    print(format_robustness_table({k: v["results"] for k, v in runs.items()}))
-    print(f"\ntotal time {time.perf_counter() - start:.0f} s; runs in {args.out}")
-    return runs
+    return run_comparison(args, "lrgt", lr=args.lr, pretrained_encoder=args.deit)
 
 
 if __name__ == "__main__":

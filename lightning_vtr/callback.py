@@ -5,7 +5,6 @@ synthesize them and train on them next epoch.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ from lightning_vtr.data.dataset import GeneratedSample
 from lightning_vtr.protocol import check_reconstruction_model
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 __all__ = ["ErrorGuidedViewAugmentation"]
 
@@ -93,8 +93,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
     caught up when training resumes.
 
     Args:
-        selector: a :class:`~lightning_vtr.selection.base.ViewSelector`; default ``ErrorGuidedSelector()``
-            (K = 30, 3 views).
+        selector: a :class:`~lightning_vtr.selection.base.ViewSelector`, or the name of one in
+            :data:`lightning_vtr.selection.SELECTORS` (``"error_guided"``, ``"random"``, ``"nature"``,
+            ``"viat"``, ``"mvtn"``), built with its defaults; default ``ErrorGuidedSelector()`` (K = 30, 3 views).
         synthesizer: a :class:`~lightning_vtr.synthesis.base.Synthesizer`; default ``RenderSynthesizer()``.
         fraction: share of training objects searched per epoch (the paper's random update strategy: 5 %).
         min_objects: lower bound on objects searched per epoch.
@@ -109,7 +110,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
         progress_bar: show a progress bar while synthesizing (rank 0).
 
     Raises:
-        ValueError: on invalid arguments (names the argument and value).
+        TypeError: an argument of the wrong type (e.g. a ``selector`` that is neither a ViewSelector nor a name).
+        ValueError: on invalid arguments (names the argument and value), e.g. an unknown selector name.
         MisconfigurationException: in ``setup`` when the Trainer, datamodule or model cannot be served.
 
     Example::
@@ -117,11 +119,13 @@ class ErrorGuidedViewAugmentation(L.Callback):
         trainer = L.Trainer(max_epochs=20, reload_dataloaders_every_n_epochs=1,
                             callbacks=[ErrorGuidedViewAugmentation()])
         trainer.fit(Pix2VoxPlusPlus(preset="tiny"), datamodule=VTRDataModule(image_size=64))
+
+        # or by registry name, as a YAML config would: ErrorGuidedViewAugmentation(selector="random")
     """
 
     def __init__(
         self,
-        selector: ViewSelector | None = None,
+        selector: ViewSelector | str | None = None,
         synthesizer: Synthesizer | None = None,
         *,
         fraction: float = 0.05,
@@ -135,37 +139,42 @@ class ErrorGuidedViewAugmentation(L.Callback):
         log_images: bool = True,
         progress_bar: bool = True,
     ) -> None:
-        if not 0.0 < fraction <= 1.0:
-            raise ValueError(f"`fraction` must be in (0, 1], got {fraction!r}")
-        if min_objects < 1:
-            raise ValueError(f"`min_objects` must be >= 1, got {min_objects!r}")
-        if max_samples is not None and max_samples < 1:
-            raise ValueError(f"`max_samples` must be >= 1 or None, got {max_samples!r}")
-        if pool_capacity is not None and pool_capacity < 1:
-            raise ValueError(f"`pool_capacity` must be >= 1 or None, got {pool_capacity!r}")
-        if batch_size < 1:
-            raise ValueError(f"`batch_size` must be >= 1, got {batch_size!r}")
-        if selector is not None and not isinstance(selector, ViewSelector):
-            raise ValueError(f"`selector` must be a lightning_vtr ViewSelector, got {type(selector).__name__}")
-        if synthesizer is not None and not isinstance(synthesizer, Synthesizer):
-            raise ValueError(f"`synthesizer` must be a lightning_vtr Synthesizer, got {type(synthesizer).__name__}")
-        if selector is None:
+        fraction = check_float("fraction", fraction, minimum=0.0, maximum=1.0, min_open=True)
+        min_objects = check_int("min_objects", min_objects, minimum=1)
+        if max_samples is not None:
+            max_samples = check_int("max_samples", max_samples, minimum=1)
+        if pool_capacity is not None:
+            pool_capacity = check_int("pool_capacity", pool_capacity, minimum=1)
+        batch_size = check_int("batch_size", batch_size, minimum=1)
+        # a SeedSequence entropy word: non-negative
+        seed = check_int("seed", seed, minimum=0)
+        if isinstance(selector, str):
+            # a registry name, as YAML configs and the CLI give it; imported here so that importing the
+            # callback does not import every selector
+            from lightning_vtr.selection.registry import SELECTORS, make_selector
+
+            selector = make_selector(check_choice("selector", selector, SELECTORS))
+        elif selector is None:
             from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 
             selector = ErrorGuidedSelector()
+        else:
+            check_type("selector", selector, ViewSelector, "lightning_vtr ViewSelector or a registry name")
         if synthesizer is None:
             from lightning_vtr.synthesis.render import RenderSynthesizer
 
             synthesizer = RenderSynthesizer()
+        else:
+            check_type("synthesizer", synthesizer, Synthesizer, "lightning_vtr Synthesizer")
         self.selector = selector
         self.synthesizer = synthesizer
-        self.fraction = float(fraction)
-        self.min_objects = int(min_objects)
+        self.fraction = fraction
+        self.min_objects = min_objects
         self.use_pool = selector.uses_pool if use_pool is None else bool(use_pool)
         self.max_samples = max_samples
-        self.batch_size = int(batch_size)
+        self.batch_size = batch_size
         self.source_view_set = source_view_set
-        self.seed = int(seed)
+        self.seed = seed
         self.log_images = log_images
         self.progress_bar = progress_bar
         self.pool = None

@@ -31,7 +31,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from lightning_vtr.utils.validation import check_choice, check_int, check_range
+
 __all__ = [
+    "DEFAULT_HALF_EXTENT",
     "DEFAULT_RESOLUTION",
     "angle_bins",
     "angular_distance",
@@ -55,6 +58,11 @@ __all__ = [
 ]
 
 DEFAULT_RESOLUTION = 32
+#: Radius of the sphere around the object cube ``[-0.5, 0.5]^3``, ``sqrt(3) / 2`` world units. An
+#: orthographic view whose square image reaches this far from the centre keeps the whole cube in frame
+#: from every viewpoint, so it is the default half-extent of the error projection, the differentiable
+#: projection and the orthographic renderer (which also sizes its depth range with it).
+DEFAULT_HALF_EXTENT = math.sqrt(3.0) / 2.0
 
 
 def _as_tensor(x: Tensor | np.ndarray | float | list, dtype: torch.dtype | None = None) -> Tensor:
@@ -67,14 +75,18 @@ def _as_tensor(x: Tensor | np.ndarray | float | list, dtype: torch.dtype | None 
 
 
 def check_viewpoints(viewpoints: Tensor, name: str = "viewpoints") -> Tensor:
-    """Check that ``viewpoints`` has shape ``(..., 2)`` and finite values; return it as a float tensor."""
+    """Check that ``viewpoints`` has shape ``(..., 2)`` and finite values; return it as a float tensor.
+
+    Raises:
+        ValueError: for another shape or a NaN / infinite angle (the message names ``name``).
+    """
     vp = _as_tensor(viewpoints)
     if not vp.is_floating_point():
         vp = vp.to(torch.get_default_dtype())
     if vp.ndim == 0 or vp.shape[-1] != 2:
         raise ValueError(f"`{name}` must have shape (..., 2) holding (yaw, pitch) in degrees, got {tuple(vp.shape)}")
     if not torch.isfinite(vp).all():
-        raise ValueError(f"`{name}` contains NaN or infinite angles")
+        raise ValueError(f"`{name}` must hold finite angles, got NaN or infinite values")
     return vp
 
 
@@ -170,10 +182,19 @@ def orthographic_pixel_coords(points: Tensor, viewpoints: Tensor, image_size: in
     return torch.stack([row, col, depth], dim=-1)
 
 
-def check_bin_interval(k: float) -> int:
-    """Validate an angle-bin interval ``K`` (degrees): a positive integer dividing 180."""
-    if isinstance(k, bool) or not float(k).is_integer() or k <= 0 or 180 % int(k) != 0:
-        raise ValueError(f"The bin interval K must be a positive integer that divides 180 (degrees), got K={k!r}")
+def check_bin_interval(k: float, name: str = "k") -> int:
+    """Validate an angle-bin interval ``K`` (degrees): a positive integer dividing 180; returns it as an int.
+
+    A float with an integral value (``30.0``) is accepted, as angles often arrive as floats.
+
+    Raises:
+        TypeError: ``k`` is not a real number.
+        ValueError: ``k`` is not a positive integer that divides 180.
+    """
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, float, np.integer, np.floating)):
+        raise TypeError(f"`{name}` must be a bin interval K in degrees (a number), got {type(k).__name__} {k!r}")
+    if not float(k).is_integer() or k <= 0 or 180 % int(k) != 0:
+        raise ValueError(f"`{name}` must be a bin interval K in degrees that divides 180, got {k!r}")
     return int(k)
 
 
@@ -203,17 +224,18 @@ def sample_uniform_viewpoints(
     """Sample ``n`` viewpoints ``(n, 2)`` in degrees.
 
     ``mode="angle"`` draws yaw and pitch uniformly in their ranges; ``mode="area"`` draws
-    uniformly over the covered patch of the sphere (``sin(pitch)`` uniform).
+    uniformly over the covered patch of the sphere (``sin(pitch)`` uniform). Yaw is wrapped into
+    ``[-180, 180)`` afterwards, so ``yaw_range`` itself is not bounded.
+
+    Raises:
+        TypeError: ``n`` is not an int, or a range is not a pair of numbers.
+        ValueError: ``n < 0``, an unknown ``mode``, ``pitch_range`` outside ``[-90, 90]`` or a range with
+            ``low > high``.
     """
-    if n < 0:
-        raise ValueError(f"`n` must be >= 0, got {n}")
-    if mode not in ("angle", "area"):
-        raise ValueError(f"`mode` must be 'angle' or 'area', got {mode!r}")
-    (y0, y1), (p0, p1) = yaw_range, pitch_range
-    if not (-90.0 <= p0 <= p1 <= 90.0):
-        raise ValueError(f"`pitch_range` must satisfy -90 <= low <= high <= 90, got {pitch_range}")
-    if y1 < y0:
-        raise ValueError(f"`yaw_range` must satisfy low <= high, got {yaw_range}")
+    n = check_int("n", n, minimum=0)
+    check_choice("mode", mode, ("angle", "area"))
+    y0, y1 = check_range("yaw_range", yaw_range, -math.inf, math.inf, "degrees")
+    p0, p1 = check_range("pitch_range", pitch_range, -90.0, 90.0, "degrees")
     u = torch.rand(n, 2, generator=generator, dtype=torch.float64)
     yaw = y0 + (y1 - y0) * u[:, 0]
     if mode == "angle":

@@ -26,7 +26,8 @@ import pyrender  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 
-from lightning_vtr.geometry import camera_pose, check_viewpoints  # noqa: E402
+from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, camera_pose, check_viewpoints  # noqa: E402
+from lightning_vtr.utils.validation import check_choice, check_float, check_int  # noqa: E402
 
 __all__ = [
     "DEFAULT_DISTANCE",
@@ -44,11 +45,9 @@ DEFAULT_YFOV_DEG = math.degrees(2.0 * math.atan(16.0 / 35.0))  # ~49.13
 #: bounding sphere of ``[-0.5, 0.5]^3`` (radius sqrt(3)/2) subtends 23.2 degrees of the 24.6-degree
 #: half field of view, so a normalised object is in frame from every viewpoint.
 DEFAULT_DISTANCE = 2.2
-#: Half the side (world units) of the square an orthographic view covers: the radius of the bounding
-#: sphere of ``[-0.5, 0.5]^3``, the same default as :func:`lightning_vtr.selection.projection.error_projection`.
-DEFAULT_HALF_EXTENT = math.sqrt(3.0) / 2.0
-
-_BOUNDING_RADIUS = math.sqrt(3.0) / 2.0
+# DEFAULT_HALF_EXTENT (re-exported): half the side (world units) of the square an orthographic view covers,
+# the radius of the bounding sphere of ``[-0.5, 0.5]^3``; defined once in lightning_vtr.geometry so the
+# renderer and the error projection cannot drift apart.
 _ZNEAR = 0.05
 
 # Key light direction in camera coordinates (x right, y up, looking along -z): from the upper left,
@@ -115,6 +114,10 @@ class Renderer:
     The lighting moves with the camera (a key light from the camera's upper left plus ambient), so
     every view is lit the same way relative to what it sees and no view leaves the object in shadow.
 
+    Raises:
+        TypeError: an argument of the wrong type (e.g. a non-integral ``image_size``).
+        ValueError: an argument out of range (named in the message, with its value).
+
     Example:
         >>> import trimesh
         >>> r = get_renderer(64)
@@ -135,26 +138,26 @@ class Renderer:
         base_color: tuple[float, float, float] = (0.72, 0.72, 0.72),
         smooth: bool = False,
     ) -> None:
-        if isinstance(image_size, bool) or not float(image_size).is_integer() or int(image_size) < 1:
-            raise ValueError(f"`image_size` must be a positive integer, got {image_size!r}")
-        if camera not in ("perspective", "orthographic"):
-            raise ValueError(f"`camera` must be 'perspective' or 'orthographic', got {camera!r}")
-        if not 0.0 < yfov_deg < 180.0:
-            raise ValueError(f"`yfov_deg` must be in (0, 180) degrees, got {yfov_deg}")
-        if not distance > _ZNEAR:
-            raise ValueError(f"`distance` must be > {_ZNEAR} (the near plane), got {distance}")
-        if not half_extent > 0.0:
-            raise ValueError(f"`half_extent` must be > 0, got {half_extent}")
-        if len(base_color) != 3 or not all(0.0 <= c <= 1.0 for c in base_color):
-            raise ValueError(f"`base_color` must be three numbers in [0, 1], got {base_color}")
-        self.image_size = int(image_size)
-        self.camera = camera
-        self.yfov_deg = float(yfov_deg)
-        self.distance = float(distance)
-        self.half_extent = float(half_extent)
+        # an integral float (64.0) is accepted as a size, as it always was; anything else that is not a
+        # positive integer is refused with the shared message form
+        if isinstance(image_size, (float, np.floating)) and float(image_size).is_integer():
+            image_size = int(image_size)
+        self.image_size = check_int("image_size", image_size, minimum=1)
+        self.camera = check_choice("camera", camera, ("perspective", "orthographic"))
+        self.yfov_deg = check_float("yfov_deg", yfov_deg, minimum=0.0, maximum=180.0, min_open=True, max_open=True)
+        # the camera must stand outside the near plane
+        self.distance = check_float("distance", distance, minimum=_ZNEAR, min_open=True)
+        self.half_extent = check_float("half_extent", half_extent, minimum=0.0, min_open=True)
         self.ambient = float(ambient)
         self.light_intensity = float(light_intensity)
-        self.base_color = tuple(float(c) for c in base_color)
+        if not isinstance(base_color, (tuple, list, np.ndarray)):
+            kind = type(base_color).__name__
+            raise TypeError(f"`base_color` must be three numbers in [0, 1], got {kind} {base_color!r}")
+        if len(base_color) != 3:
+            raise ValueError(f"`base_color` must be three numbers in [0, 1], got {base_color!r}")
+        self.base_color = tuple(
+            check_float(f"base_color[{i}]", c, minimum=0.0, maximum=1.0) for i, c in enumerate(base_color)
+        )
         self.smooth = smooth
         self._closed = False
         with _CONTEXT.lock:
@@ -162,7 +165,8 @@ class Renderer:
 
     # ------------------------------------------------------------------ scene
     def _make_camera(self) -> pyrender.Camera:
-        zfar = self.distance + 2.0 * _BOUNDING_RADIUS + 1.0
+        # behind the far side of the object's bounding sphere (radius DEFAULT_HALF_EXTENT), with a margin
+        zfar = self.distance + 2.0 * DEFAULT_HALF_EXTENT + 1.0
         if self.camera == "perspective":
             return pyrender.PerspectiveCamera(yfov=math.radians(self.yfov_deg), aspectRatio=1.0, znear=_ZNEAR, zfar=zfar)
         return pyrender.OrthographicCamera(xmag=self.half_extent, ymag=self.half_extent, znear=_ZNEAR, zfar=zfar)

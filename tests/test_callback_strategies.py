@@ -12,10 +12,18 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from helpers import (
+    EmptyPredictionModel,
+    TinyUserModel,
+    generated_contents,
+    generated_index,
+    make_callback,
+    make_datamodule,
+    make_trainer,
+)
 
 from lightning_vtr.geometry import wrap_yaw
 from lightning_vtr.selection import MVTNSelector, VIATSelector
-from test_callback import EmptyPredictionModel, TinyUserModel, _callback, _contents, _dm, _index, _trainer
 
 SELECTORS = {
     "viat": lambda: VIATSelector(population=4, iterations=2),
@@ -51,9 +59,9 @@ def _records(tmp_path: Path) -> list[dict]:
 
 
 def test_viat_samples_are_its_view_sets_spaced_120_degrees_in_yaw(tiny_dataset, tmp_path):
-    dm = _dm(tiny_dataset, tmp_path)
-    callback = _callback(selector=SELECTORS["viat"](), fraction=0.15)
-    _trainer(tmp_path, 3, [callback]).fit(TinyUserModel(), datamodule=dm)
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    callback = make_callback(selector=SELECTORS["viat"](), fraction=0.15)
+    make_trainer(tmp_path, 3, [callback]).fit(TinyUserModel(), datamodule=dm)
     assert callback.pool is None  # VIAT trains on what it selects, no pool
     records = _records(tmp_path)
     assert [r["epoch"] for r in records] == [0, 1]
@@ -83,10 +91,10 @@ def test_viat_samples_are_its_view_sets_spaced_120_degrees_in_yaw(tiny_dataset, 
 
 
 def test_mvtn_samples_are_its_network_views_of_the_error(tiny_dataset, tmp_path):
-    dm = _dm(tiny_dataset, tmp_path)
-    callback = _callback(selector=SELECTORS["mvtn"](), fraction=0.15)
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    callback = make_callback(selector=SELECTORS["mvtn"](), fraction=0.15)
     # Two epochs: only epoch 0 generates, so the selector's final network is the one that chose its views.
-    _trainer(tmp_path, 2, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
+    make_trainer(tmp_path, 2, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     assert callback.pool is None
     samples = dm.generated_samples
     assert len(samples) == 3
@@ -119,14 +127,14 @@ class TrainSetSizeProbe(L.Callback):
 
 def _fit(root, tmp_path, epochs, name, ckpt=None):
     L.seed_everything(0, verbose=False)
-    dm = _dm(root, tmp_path)
+    dm = make_datamodule(root, tmp_path)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
-    callback = _callback(selector=SELECTORS[name](), fraction=0.15)
+    callback = make_callback(selector=SELECTORS[name](), fraction=0.15)
     probe = TrainSetSizeProbe()
     # EmptyPredictionModel: the selections depend on the selector's state and the data, not on how the model
     # trained, so any difference below is the selector's (or the callback's) doing. (The model's own batch
     # order after a resume is the datamodule's business: see VTRDataModule's seeded shuffling.)
-    trainer = _trainer(tmp_path, epochs, [callback, checkpoint, probe])
+    trainer = make_trainer(tmp_path, epochs, [callback, checkpoint, probe])
     trainer.fit(EmptyPredictionModel(), datamodule=dm, ckpt_path=ckpt)
     return dm, callback, probe.sizes
 
@@ -143,7 +151,7 @@ def test_resume_restores_the_selector_and_generates_what_an_uninterrupted_run_do
     resumed, resumed_cb, resumed_sizes = _fit(tiny_dataset, tmp_path / "part", 4, name, ckpt=str(ckpt))
     assert [s["epoch"] for s in full.generated_samples] == [0] * 3 + [1] * 3 + [2] * 3
     # Epoch 1's search (which the checkpoint predates) is caught up from the restored selector ...
-    assert _contents(resumed) == _contents(full)
+    assert generated_contents(resumed) == generated_contents(full)
     assert _state_digest(resumed_cb.selector.state_dict()) == _state_digest(full_cb.selector.state_dict())
     # ... and a fresh selector differs, so the equalities above are not vacuous.
     assert _state_digest(SELECTORS[name]().state_dict()) != _state_digest(full_cb.selector.state_dict())
@@ -189,21 +197,21 @@ class SelectorStateProbe(L.Callback):
 @pytest.mark.parametrize("name", sorted(SELECTORS))
 def test_two_process_ddp_generates_and_learns_what_one_process_does(tiny_dataset, tmp_path, name):
     single = tmp_path / "single"
-    callback = _callback(selector=SELECTORS[name](), fraction=0.15)
-    _trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=_dm(tiny_dataset, single))
+    callback = make_callback(selector=SELECTORS[name](), fraction=0.15)
+    make_trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, single))
 
     ddp = tmp_path / "ddp"
     probe = SelectorStateProbe(str(tmp_path / "ddp_state.pt"))
     trainer = L.Trainer(
         max_epochs=3, accelerator="cpu", devices=2, strategy="ddp_spawn",
-        callbacks=[_callback(selector=SELECTORS[name](), fraction=0.15), probe],
+        callbacks=[make_callback(selector=SELECTORS[name](), fraction=0.15), probe],
         default_root_dir=str(ddp), logger=False, enable_progress_bar=False, enable_model_summary=False,
         limit_train_batches=2, limit_val_batches=1, reload_dataloaders_every_n_epochs=1,
     )
-    trainer.fit(EmptyPredictionModel(), datamodule=_dm(tiny_dataset, ddp))
+    trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 
-    assert len(_index(single / "gen")) == 6
-    assert _index(ddp / "gen") == _index(single / "gen")
+    assert len(generated_index(single / "gen")) == 6
+    assert generated_index(ddp / "gen") == generated_index(single / "gen")
     saved = torch.load(tmp_path / "ddp_state.pt", weights_only=False)
     # Both ranks hold exactly the selector rank 0 learned (it is broadcast) ...
     assert saved["digests"] == [_state_digest(saved["state"])] * 2

@@ -1,4 +1,7 @@
-"""examples/*.py run end to end on the tiny dataset and print the results their runs wrote."""
+"""examples/*.py run end to end on the tiny dataset.
+
+The harness examples print the results their runs wrote; the quickstart trains with the callback and tests.
+"""
 
 from __future__ import annotations
 
@@ -37,3 +40,17 @@ def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, na
     # Epoch 0 of 2 ends with one search of 15 % of the 21 training objects; the baseline generates nothing.
     assert runs[f"Ours ({title})"]["generated_samples"] == round(0.15 * 21)
     assert runs[f"{title} (no VTR)"]["generated_samples"] == 0
+
+
+@pytest.mark.slow
+def test_quickstart_trains_with_the_callback_and_tests_every_view_set(tiny_dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # the Trainer writes lightning_logs/ into the working directory
+    outputs = _load("quickstart").main(str(tiny_dataset))
+    printed = capsys.readouterr().out
+
+    # Epoch 0 of 2 ends with one search of 5 % of the 21 training objects (at least one object).
+    assert "generated samples: 1" in printed.splitlines()
+    metrics = {k: v for output in outputs for k, v in output.items()}
+    for view_set in ("aligned", "hemispherical", "spherical"):
+        for metric in ("iou@0.4", "fscore"):
+            assert 0.0 <= metrics[f"test/{view_set}/{metric}"] <= 1.0

@@ -90,10 +90,30 @@ def test_bins_for_k30():
                                                     [-135.0, 45.0], [-45.0, 45.0], [45.0, 45.0], [135.0, 45.0]]
 
 
-@pytest.mark.parametrize("k", [7, 0, -30, 2.5, True, 360])
+@pytest.mark.parametrize("k", [7, 0, -30, 2.5, 360])
 def test_bad_bin_intervals(k):
-    with pytest.raises(ValueError, match="K"):
+    with pytest.raises(ValueError, match=rf"^`k` must be a bin interval K in degrees that divides 180, got {k}$"):
         g.check_bin_interval(k)
+
+
+@pytest.mark.parametrize("k", [True, "30", None])
+def test_bin_interval_of_a_wrong_type(k):
+    with pytest.raises(TypeError, match="^`k` must be a bin interval K in degrees"):
+        g.check_bin_interval(k)
+
+
+def test_integral_float_bin_interval_is_accepted():
+    assert g.check_bin_interval(30.0) == 30 and type(g.check_bin_interval(30.0)) is int
+
+
+def test_default_half_extent_is_the_bounding_radius_everywhere():
+    from lightning_vtr import renderer
+    from lightning_vtr.selection import differentiable_projection
+
+    # the circumsphere of [-0.5, 0.5]^3: a corner is sqrt(3) / 2 from the centre
+    assert g.DEFAULT_HALF_EXTENT == pytest.approx(float(torch.tensor([0.5, 0.5, 0.5]).norm()))
+    assert renderer.DEFAULT_HALF_EXTENT is g.DEFAULT_HALF_EXTENT
+    assert differentiable_projection.DEFAULT_HALF_EXTENT is g.DEFAULT_HALF_EXTENT
 
 
 def test_uniform_sampling_angle_vs_area():
@@ -115,6 +135,12 @@ def test_uniform_sampling_angle_vs_area():
         g.sample_uniform_viewpoints(3, pitch_range=(-100.0, 0.0))
     with pytest.raises(ValueError, match="mode"):
         g.sample_uniform_viewpoints(3, mode="volume")
+    with pytest.raises(ValueError, match=r"^`yaw_range` must satisfy .*low <= high.*, got \(30, 10\)$"):
+        g.sample_uniform_viewpoints(3, yaw_range=(30, 10))
+    with pytest.raises(ValueError, match="^`n` must be an int >= 0, got -1$"):
+        g.sample_uniform_viewpoints(-1)
+    with pytest.raises(TypeError, match="^`n` must be an int, got float 2.0$"):
+        g.sample_uniform_viewpoints(2.0)
 
 
 def test_gaussian_sampling_std_and_wrapping():

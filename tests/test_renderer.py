@@ -110,7 +110,7 @@ def test_top_view_orientation():
     rows, cols = np.nonzero(alpha)
     # up = (-sin p cos y, -sin p sin y, cos p) = (-1, 0, 0); right = forward x up = (0,0,-1) x (-1,0,0) = (0, 1, 0).
     assert rows.max() - rows.min() + 1 == pytest.approx(0.6 * 64, abs=1)  # the long x side is vertical
-    marker_rows, marker_cols = rows[cols > 32 + 0.1 * 64], cols[cols > 32 + 0.1 * 64]
+    marker_rows = rows[cols > 32 + 0.1 * 64]
     assert marker_rows.size > 0 and marker_rows.max() < 32  # -X (marker side) is up, +Y is right
 
 
@@ -212,6 +212,19 @@ def test_renderers_share_one_cached_context():
     with pytest.raises(RuntimeError, match="closed"):
         c.render(_box((0.5, 0.5, 0.5)), [[0.0, 0.0]])
     assert get_renderer(24, camera="orthographic") is not c
+
+
+def test_renderer_argument_types_and_messages():
+    with Renderer(32.0) as renderer:
+        assert renderer.image_size == 32  # an integral float size is still accepted
+    with pytest.raises(TypeError, match="^`image_size` must be an int, got float 2.5$"):
+        Renderer(2.5)
+    with pytest.raises(ValueError, match=r"^`yfov_deg` must be a number in \(0, 180\), got 180.0$"):
+        Renderer(32, yfov_deg=180.0)
+    with pytest.raises(ValueError, match=r"^`base_color\[2\]` must be a number in \[0, 1\], got 2.0$"):
+        Renderer(32, base_color=(0.5, 0.5, 2.0))
+    with pytest.raises(ValueError, match=r"^`base_color` must be three numbers in \[0, 1\], got \[0.5, 0.5\]$"):
+        Renderer(32, base_color=[0.5, 0.5])
 
 
 def test_renderer_argument_errors():

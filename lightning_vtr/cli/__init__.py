@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from lightning_vtr.cli.main import main
+from lightning_vtr.cli.main import COMMANDS, build_parser, main
 
-__all__ = ["main"]
+__all__ = ["COMMANDS", "build_parser", "main"]

@@ -6,13 +6,21 @@ Names are imported lazily so dataset build workers do not import Lightning.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # what IDEs and type checkers see; at runtime __getattr__ imports on first use
+    from lightning_vtr.data.builder import BuildReport, build_dataset, ensure_embedded_dataset
+    from lightning_vtr.data.datamodule import VTRDataModule
+    from lightning_vtr.data.dataset import GeneratedSample, ImageTransform
+    from lightning_vtr.data.format import DatasetFormatError, ObjectRecord, scan_dataset
+    from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
+    from lightning_vtr.protocol import VIEW_SETS
 
 _EXPORTS = {
     "BuildReport": "lightning_vtr.data.builder",
     "build_dataset": "lightning_vtr.data.builder",
     "ensure_embedded_dataset": "lightning_vtr.data.builder",
-    "VIEW_SETS": "lightning_vtr.data.datamodule",
+    "VIEW_SETS": "lightning_vtr.protocol",
     "VTRDataModule": "lightning_vtr.data.datamodule",
     "GeneratedSample": "lightning_vtr.data.dataset",
     "ImageTransform": "lightning_vtr.data.dataset",
@@ -21,10 +29,26 @@ _EXPORTS = {
     "scan_dataset": "lightning_vtr.data.format",
     "ShapeNetRenderingSource": "lightning_vtr.data.shapenet_rendering",
 }
-__all__ = list(_EXPORTS)
+__all__ = [
+    "VIEW_SETS",
+    "BuildReport",
+    "DatasetFormatError",
+    "GeneratedSample",
+    "ImageTransform",
+    "ObjectRecord",
+    "ShapeNetRenderingSource",
+    "VTRDataModule",
+    "build_dataset",
+    "ensure_embedded_dataset",
+    "scan_dataset",
+]
 
 
 def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
         return getattr(importlib.import_module(_EXPORTS[name]), name)
     raise AttributeError(f"module 'lightning_vtr.data' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

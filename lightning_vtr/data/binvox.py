@@ -25,11 +25,14 @@ the file's voxel centres exactly the package's. Files made in a +Y-up frame (Sha
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
+
+from lightning_vtr.data.format import UP_AXES
+from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.validation import check_choice, check_float
 
 __all__ = ["read_binvox", "voxels_to_z_up", "voxels_to_y_up", "write_binvox"]
 
@@ -49,11 +52,6 @@ def voxels_to_z_up(voxels: np.ndarray) -> np.ndarray:
 def voxels_to_y_up(voxels: np.ndarray) -> np.ndarray:
     """Inverse of :func:`voxels_to_z_up`: ``out[i, j, k] = voxels[i, R - 1 - k, j]``."""
     return np.ascontiguousarray(np.flip(voxels.transpose(0, 2, 1), axis=2))
-
-
-def _check_up_axis(up_axis: str) -> None:
-    if up_axis not in ("y", "z"):
-        raise ValueError(f"`up_axis` must be 'y' or 'z', got {up_axis!r}")
 
 
 def _read_header(f, path: Path) -> tuple[tuple[int, int, int], tuple[float, float, float], float]:
@@ -113,7 +111,7 @@ def read_binvox(
     Raises:
         ValueError: bad header or data that do not decode to ``D * H * W`` voxels; names the file.
     """
-    _check_up_axis(up_axis)
+    check_choice("up_axis", up_axis, UP_AXES)
     path = Path(path)
     with open(path, "rb") as f:
         dims, translate, scale = _read_header(f, path)
@@ -161,38 +159,32 @@ def write_binvox(
     """Write a ``(D, H, W)`` voxel array ``V[i, j, k]`` (``(x, y, z)`` indices) as a binvox file, atomically.
 
     Args:
-        path: destination; written to a temporary file in the same directory, then :func:`os.replace`\\ d.
+        path: destination, written atomically (:func:`lightning_vtr.utils.io.atomic_write`).
         voxels: occupancy per voxel; any non-zero value counts as occupied.
         translate, scale: the header's normalisation (see the module docstring); the defaults make the
             file's voxel centres those of :func:`lightning_vtr.geometry.voxel_centers`.
         up_axis: ``"y"`` writes the grid re-expressed in a +Y-up frame (inverse of reading with
             ``up_axis="y"``), for tools that expect ShapeNetVox32's orientation.
     """
-    _check_up_axis(up_axis)
+    check_choice("up_axis", up_axis, UP_AXES)
     voxels = np.asarray(voxels)
     if voxels.ndim != 3 or min(voxels.shape) < 1:
         raise ValueError(f"`voxels` must be a non-empty 3-D array (D, H, W), got shape {voxels.shape}")
-    translate = tuple(float(t) for t in translate)
-    if len(translate) != 3 or not np.isfinite(translate).all():
-        raise ValueError(f"`translate` must be three finite numbers, got {translate}")
-    if not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"`scale` must be a positive number, got {scale!r}")
+    try:
+        offsets = tuple(float(t) for t in translate)
+    except (TypeError, ValueError):
+        raise TypeError(f"`translate` must be three numbers, got {translate!r}") from None
+    if len(offsets) != 3 or not np.isfinite(offsets).all():
+        raise ValueError(f"`translate` must be three finite numbers, got {translate!r}")
+    translate = offsets
+    scale = check_float("scale", scale, minimum=0.0, min_open=True)
     grid = voxels != 0
     if up_axis == "y":
         grid = voxels_to_y_up(grid)
     dims = grid.shape
     header = (
         f"#binvox 1\ndim {dims[0]} {dims[1]} {dims[2]}\n"
-        f"translate {translate[0]!r} {translate[1]!r} {translate[2]!r}\nscale {float(scale)!r}\ndata\n"
+        f"translate {translate[0]!r} {translate[1]!r} {translate[2]!r}\nscale {scale!r}\ndata\n"
     ).encode("ascii")
     body = _run_length_encode(grid.transpose(0, 2, 1).reshape(-1))  # x, z, y(fastest)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.binvox")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header + body)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, header + body)

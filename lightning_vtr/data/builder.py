@@ -52,18 +52,22 @@ from lightning_vtr.data.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
     SHAPENET_SYNSETS,
-    VIEW_SETS,
-    atomic_write_bytes,
+    UP_AXES,
     atomic_write_json,
     image_path,
     object_dir,
     read_object_json,
 )
+from lightning_vtr.data.mesh import MESH_EXTENSIONS
 from lightning_vtr.geometry import sample_uniform_viewpoints, wrap_yaw
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "BuildReport",
     "EMBEDDED_DEFAULTS",
+    "SOURCE_LAYOUTS",
     "build_dataset",
     "embedded_dataset_dir",
     "ensure_embedded_dataset",
@@ -71,10 +75,10 @@ __all__ = [
     "view_set_viewpoints",
 ]
 
-MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")
 #: Objects per category of the procedural source when ``objects_per_category`` is None.
 DEFAULT_PROCEDURAL_OBJECTS = 30
-_LAYOUTS = ("auto", "shapenet_v1", "shapenet_v2", "generic")
+#: The values of ``source_layout``: ``"auto"`` detects one of the other three.
+SOURCE_LAYOUTS: tuple[str, ...] = ("auto", "shapenet_v1", "shapenet_v2", "generic")
 # Level 1 of zlib: PNGs of flat-shaded renders shrink ~10 % less than at the default 6 but encode
 # several times faster, and encoding is a large share of the build time at 128 px.
 _PNG_COMPRESS_LEVEL = 1
@@ -168,7 +172,7 @@ def _detect_layout(root: Path) -> str:
                 return "shapenet_v2"
             if (sample / "model.obj").is_file():
                 return "shapenet_v1"
-        if any(p.suffix.lower() in MESH_SUFFIXES for p in cat_dir.iterdir()):
+        if any(p.suffix.lower() in MESH_EXTENSIONS for p in cat_dir.iterdir()):
             return "generic"
     return "generic"
 
@@ -187,7 +191,7 @@ def _discover(
         cats = list(categories) if categories else list(CATEGORIES)
         unknown = sorted(set(cats) - set(CATEGORIES))
         if unknown:
-            raise ValueError(f"`categories` {unknown} are not procedural categories; choose from {list(CATEGORIES)}")
+            raise ValueError(f"`categories` must be procedural categories (of {list(CATEGORIES)}), got unknown {unknown}")
         n = DEFAULT_PROCEDURAL_OBJECTS if objects_per_category is None else objects_per_category
         return [_Task(c, object_id(c, i), "procedural", index=i) for c in sorted(cats) for i in range(n)]
     root = Path(source)
@@ -202,7 +206,7 @@ def _discover(
         if wanted is not None and not {cat_dir.name, category} & wanted:
             continue
         if layout == "generic":
-            found = [(p.stem, p) for p in sorted(cat_dir.iterdir()) if p.is_file() and p.suffix.lower() in MESH_SUFFIXES]
+            found = [(p.stem, p) for p in sorted(cat_dir.iterdir()) if p.is_file() and p.suffix.lower() in MESH_EXTENSIONS]
             up = up_axis or "z"
         else:
             rel = Path("models/model_normalized.obj") if layout == "shapenet_v2" else Path("model.obj")
@@ -214,7 +218,7 @@ def _discover(
     if wanted is not None:
         missing = wanted - {t.category for t in tasks} - {p.name for p in root.iterdir()}
         if missing:
-            raise ValueError(f"`categories` {sorted(missing)} have no folder under {root}")
+            raise ValueError(f"`categories` must name folders under {root}, got {sorted(missing)} without one")
     if not tasks:
         raise ValueError(f"No meshes found under {root} (layout {layout!r}); expected {_layout_hint(layout)}")
     return sorted(tasks, key=lambda t: (t.category, t.object_id))
@@ -224,7 +228,7 @@ def _layout_hint(layout: str) -> str:
     return {
         "shapenet_v1": "<synset>/<model>/model.obj",
         "shapenet_v2": "<synset>/<model>/models/model_normalized.obj",
-    }.get(layout, f"<category>/<object>.<ext> with ext in {MESH_SUFFIXES}")
+    }.get(layout, f"<category>/<object>.<ext> with ext in {MESH_EXTENSIONS}")
 
 
 def _png_bytes(image: np.ndarray) -> bytes:
@@ -269,7 +273,7 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
         images = renderer.render(mesh, np.concatenate([views[n] for n in names]))
         for s, name in enumerate(names):
             for i in range(opts["views_per_set"]):
-                atomic_write_bytes(image_path(directory, name, i), _png_bytes(images[s * opts["views_per_set"] + i]))
+                atomic_write(image_path(directory, name, i), _png_bytes(images[s * opts["views_per_set"] + i]))
         (directory / "error.json").unlink(missing_ok=True)
         atomic_write_json(
             directory / "object.json",
@@ -307,23 +311,38 @@ def _splits(keys: list[tuple[str, str]], ratios: Sequence[float], seed: int) -> 
     return out
 
 
-def _check_args(image_size: int, resolution: int, views_per_set: int, aligned_pitch: float, split: Sequence[float], shard, layout: str, workers: int, up_axis) -> None:
-    for name, value in (("image_size", image_size), ("resolution", resolution), ("views_per_set", views_per_set), ("workers", workers)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"`{name}` must be a positive integer, got {value!r}")
-    if views_per_set > 100:
-        raise ValueError(f"`views_per_set` must be at most 100 (images are named 00..99.png), got {views_per_set}")
-    if not -90.0 <= float(aligned_pitch) <= 90.0:
-        raise ValueError(f"`aligned_pitch` must be in [-90, 90] degrees, got {aligned_pitch}")
-    if len(split) != 3 or abs(sum(split) - 1.0) > 1e-6 or min(split) < 0:
+def _check_args(
+    image_size: int,
+    resolution: int,
+    views_per_set: int,
+    aligned_pitch: float,
+    split: Sequence[float],
+    shard: tuple[int, int],
+    layout: str,
+    workers: int,
+    up_axis: str | None,
+) -> None:
+    check_int("image_size", image_size, minimum=1)
+    check_int("resolution", resolution, minimum=1)
+    check_int("views_per_set", views_per_set, minimum=1, maximum=100)  # images are named 00..99.png
+    check_int("workers", workers, minimum=1)
+    check_float("aligned_pitch", aligned_pitch, minimum=-90.0, maximum=90.0)
+    try:
+        ratios = [float(r) for r in split]
+    except (TypeError, ValueError):
+        raise TypeError(f"`split` must be three (train, val, test) ratios, got {split!r}") from None
+    if len(ratios) != 3 or abs(sum(ratios) - 1.0) > 1e-6 or min(ratios) < 0:
         raise ValueError(f"`split` must be three non-negative (train, val, test) ratios summing to 1, got {tuple(split)}")
-    index, count = shard
-    if count < 1 or not 0 <= index < count:
-        raise ValueError(f"`shard` must be (i, n) with 0 <= i < n, got {index}/{count}")
-    if layout not in _LAYOUTS:
-        raise ValueError(f"`source_layout` must be one of {_LAYOUTS}, got {layout!r}")
-    if up_axis not in (None, "y", "z"):
-        raise ValueError(f"`up_axis` must be None, 'y' or 'z', got {up_axis!r}")
+    try:
+        index, count = shard
+    except (TypeError, ValueError):
+        raise TypeError(f"`shard` must be a pair (i, n), got {shard!r}") from None
+    check_int("shard[0]", index)
+    check_int("shard[1]", count, minimum=1)
+    if not 0 <= index < count:
+        raise ValueError(f"`shard` must be (i, n) with 0 <= i < n, got {tuple(shard)}")
+    check_choice("source_layout", layout, SOURCE_LAYOUTS)
+    check_choice("up_axis", up_axis, (None, *UP_AXES))
 
 
 def _content_config(source, categories, objects_per_category, opts, split, layout, up_axis) -> dict[str, Any]:

@@ -5,7 +5,8 @@ mutable LightningDataModule that accepts generated samples between epochs.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +26,14 @@ from lightning_vtr.data.dataset import (
     write_generated_sample,
 )
 from lightning_vtr.data.format import ObjectRecord
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.deprecation import renamed_argument
+from lightning_vtr.utils.validation import check_int, check_type
 
 __all__ = ["VIEW_SETS", "VTRDataModule"]
 
-VIEW_SETS = ("aligned", "hemispherical", "spherical")
 _STATE_VERSION = 1
+_SHAPENET_RENDERING_KEYS = ("rendering_root", "split_file", "voxel_root")
 
 
 class _EpochSeededSampler(torch.utils.data.Sampler[int]):
@@ -60,7 +64,7 @@ class VTRDataModule(L.LightningDataModule):
             uses the embedded procedural dataset, with ``embedded`` as build options.
         shapenet_rendering: instead of ``root``, a dict ``{"rendering_root", "voxel_root", "split_file"}``
             for the 3D-R2N2 / Pix2Vox layout (one view set, served as "aligned").
-        n_views: images per sample.
+        num_views: images per sample.
         image_size: side of the model input in pixels.
         background: RGB compositing background.
         normalize: ``"imagenet"`` or ``None``.
@@ -72,9 +76,10 @@ class VTRDataModule(L.LightningDataModule):
         max_generated: keep at most this many generated samples (oldest dropped first); ``None``: all.
         seed: fixes evaluation view choices.
         embedded: build options for the embedded dataset (see ``lightning_vtr.data.builder.build_dataset``).
+        n_views: deprecated alias of ``num_views``.
 
     Example:
-        >>> dm = VTRDataModule(n_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
+        >>> dm = VTRDataModule(num_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
         >>> trainer.fit(model, datamodule=dm)  # doctest: +SKIP
     """
 
@@ -83,7 +88,7 @@ class VTRDataModule(L.LightningDataModule):
         root: str | None = None,
         *,
         shapenet_rendering: dict[str, str] | None = None,
-        n_views: int = 3,
+        num_views: int = 3,
         image_size: int = 224,
         background: tuple[int, int, int] = (255, 255, 255),
         normalize: str | None = "imagenet",
@@ -95,24 +100,33 @@ class VTRDataModule(L.LightningDataModule):
         max_generated: int | None = None,
         seed: int = 0,
         embedded: dict[str, Any] | None = None,
+        n_views: int | None = None,
     ) -> None:
         super().__init__()
+        # Resolved before save_hyperparameters(), which reads the arguments' current values.
+        num_views = renamed_argument("n_views", n_views, "num_views", num_views)
         if root is not None and shapenet_rendering is not None:
-            raise ValueError("Pass either `root` (a ShapeNet-VTR directory) or `shapenet_rendering`, not both")
-        if n_views < 1:
-            raise ValueError(f"`n_views` must be >= 1, got {n_views}")
-        if batch_size < 1:
-            raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
-        if max_generated is not None and max_generated < 0:
-            raise ValueError(f"`max_generated` must be >= 0 or None, got {max_generated}")
+            raise ValueError(
+                "`shapenet_rendering` must be None when `root` (a ShapeNet-VTR directory) is given, "
+                f"got {shapenet_rendering!r}"
+            )
+        check_int("num_views", num_views, minimum=1)
+        check_int("batch_size", batch_size, minimum=1)
+        check_int("num_workers", num_workers, minimum=0)
+        if max_generated is not None:
+            check_int("max_generated", max_generated, minimum=0)
         if shapenet_rendering is not None:
-            missing = {"rendering_root", "voxel_root", "split_file"} - set(shapenet_rendering)
+            check_type("shapenet_rendering", shapenet_rendering, Mapping, "dict")
+            missing = set(_SHAPENET_RENDERING_KEYS) - set(shapenet_rendering)
             if missing:
-                raise ValueError(f"`shapenet_rendering` is missing keys {sorted(missing)}")
-        self.save_hyperparameters()
+                raise ValueError(
+                    f"`shapenet_rendering` must have the keys {list(_SHAPENET_RENDERING_KEYS)}, "
+                    f"got {shapenet_rendering!r} (missing {sorted(missing)})"
+                )
+        self.save_hyperparameters(ignore=["n_views"])
         self.root = Path(root).expanduser() if root is not None else None
         self.shapenet_rendering = shapenet_rendering
-        self.n_views = int(n_views)
+        self.num_views = int(num_views)
         self.transform = ImageTransform(image_size, background, normalize)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
@@ -125,6 +139,16 @@ class VTRDataModule(L.LightningDataModule):
         self._records: list[ObjectRecord] | None = None
         self._generated: list[dict] = []
         self._next_sample_id = 0
+
+    @property
+    def n_views(self) -> int:
+        """Deprecated alias of :attr:`num_views`."""
+        warnings.warn(
+            "`VTRDataModule.n_views` was renamed `num_views`; the old name will be removed in 0.3.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.num_views
 
     # ------------------------------------------------------------------ data discovery
     def prepare_data(self) -> None:
@@ -155,7 +179,7 @@ class VTRDataModule(L.LightningDataModule):
         if self._category_filter is not None:
             unknown = set(self._category_filter) - {r.category for r in records}
             if unknown:
-                raise ValueError(f"`categories` names {sorted(unknown)}, which the dataset at {root} does not have")
+                raise ValueError(f"`categories` must be categories of the dataset at {root}, got unknown {sorted(unknown)}")
             records = [r for r in records if r.category in self._category_filter]
         # A fixed order makes every process (and every resumed run) index objects identically.
         self._records = sorted(records, key=lambda r: (r.category, r.object_id))
@@ -191,7 +215,7 @@ class VTRDataModule(L.LightningDataModule):
     # ------------------------------------------------------------------ loaders
     def _dataset(self, split: str, view_set: str, train: bool) -> VTRDataset:
         return VTRDataset(
-            self.split_records(split), view_set, n_views=self.n_views, transform=self.transform, train=train, seed=self.seed
+            self.split_records(split), view_set, num_views=self.num_views, transform=self.transform, train=train, seed=self.seed
         )
 
     def _epoch(self) -> int:
@@ -242,10 +266,10 @@ class VTRDataModule(L.LightningDataModule):
         return load_voxels(record)
 
     def eval_item(self, record: ObjectRecord, view_set: str = "aligned", seed: int = 0) -> dict:
-        """A model-ready item of ``n_views`` views of ``record`` chosen as a fixed function of ``seed``."""
+        """A model-ready item of ``num_views`` views of ``record`` chosen as a fixed function of ``seed``."""
         paths, _ = record.views[view_set]
         rng = np.random.default_rng([self.seed, seed, int(hashlib.sha1(record.object_id.encode()).hexdigest()[:8], 16)])
-        chosen = rng.choice(len(paths), size=self.n_views, replace=False)
+        chosen = rng.choice(len(paths), size=self.num_views, replace=False)
         images, viewpoints = self.object_views(record, view_set, chosen)
         return {
             "images": self.transform(images),

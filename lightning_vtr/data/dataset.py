@@ -6,7 +6,7 @@ Both yield the batch dictionaries described in :mod:`lightning_vtr.protocol`.
 from __future__ import annotations
 
 import json
-import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +20,9 @@ from torch.utils.data import Dataset
 
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import ObjectRecord
+from lightning_vtr.utils.deprecation import renamed_argument
+from lightning_vtr.utils.io import atomic_open, atomic_write
+from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = [
     "IMAGENET_MEAN",
@@ -52,6 +55,20 @@ def load_voxels(record: ObjectRecord) -> Tensor:
     return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis).astype(np.float32))
 
 
+def _check_background(background: Sequence[int]) -> tuple[int, int, int]:
+    """``background`` as three ints in ``[0, 255]`` (R, G, B)."""
+    try:
+        channels = tuple(background)
+    except TypeError:
+        raise TypeError(
+            f"`background` must be a sequence of three ints (R, G, B), got {type(background).__name__} {background!r}"
+        ) from None
+    if len(channels) != 3:
+        raise ValueError(f"`background` must be three ints (R, G, B) in [0, 255], got {background!r}")
+    r, g, b = (check_int(f"background[{i}]", c, minimum=0, maximum=255) for i, c in enumerate(channels))
+    return r, g, b
+
+
 class ImageTransform:
     """RGBA uint8 images -> model input: composite on a background, resize, scale, normalise.
 
@@ -69,21 +86,18 @@ class ImageTransform:
         background: Sequence[int] = (255, 255, 255),
         normalize: str | None = "imagenet",
     ) -> None:
-        if image_size <= 0:
-            raise ValueError(f"`image_size` must be positive, got {image_size}")
-        if len(background) != 3 or not all(0 <= int(c) <= 255 for c in background):
-            raise ValueError(f"`background` must be three ints in [0, 255], got {background!r}")
-        if normalize not in ("imagenet", None):
-            raise ValueError(f"`normalize` must be 'imagenet' or None, got {normalize!r}")
-        self.image_size = int(image_size)
-        self.background = tuple(int(c) for c in background)
+        image_size = check_int("image_size", image_size, minimum=1)
+        background = _check_background(background)
+        check_choice("normalize", normalize, ("imagenet", None))
+        self.image_size = image_size
+        self.background = background
         self.normalize = normalize
 
     def __call__(self, rgba: np.ndarray) -> Tensor:
         single = rgba.ndim == 3
         batch = rgba[None] if single else rgba
         if batch.ndim != 4 or batch.shape[-1] not in (3, 4):
-            raise ValueError(f"Expected (H, W, 4) or (T, H, W, 4) RGBA images, got shape {rgba.shape}")
+            raise ValueError(f"`rgba` must be (H, W, 4) or (T, H, W, 4) RGBA images, got shape {rgba.shape}")
         x = torch.from_numpy(np.ascontiguousarray(batch)).float() / 255.0  # (T, H, W, C)
         if x.shape[-1] == 4:
             alpha = x[..., 3:]
@@ -99,12 +113,21 @@ class ImageTransform:
 
 
 class VTRDataset(Dataset):
-    """One item per object: ``n_views`` images of one view set, the object's voxels and viewpoints.
+    """One item per object: ``num_views`` images of one view set, the object's voxels and viewpoints.
 
     In training the views are drawn afresh every epoch as a function of ``(seed, epoch, index)`` (set
     ``epoch`` before building each epoch's loader), so a resumed run and every DDP rank draw exactly the
     views an uninterrupted single-process run would; in evaluation (``train=False``) they are a fixed
     function of ``(seed, index)``.
+
+    Args:
+        records: the objects, one item each.
+        view_set: the view set the images are drawn from.
+        num_views: images per item (at most the number of views of every object).
+        transform: RGBA uint8 images -> model input (default :class:`ImageTransform`).
+        train: draw views afresh every epoch (else a fixed choice per item).
+        seed: seeds the view choice.
+        n_views: deprecated alias of ``num_views``.
     """
 
     def __init__(
@@ -112,14 +135,16 @@ class VTRDataset(Dataset):
         records: Sequence[ObjectRecord],
         view_set: str,
         *,
-        n_views: int = 3,
+        num_views: int = 3,
         transform: ImageTransform | None = None,
         train: bool = False,
         seed: int = 0,
+        n_views: int | None = None,
     ) -> None:
+        num_views = renamed_argument("n_views", n_views, "num_views", num_views)
         self.records = list(records)
         self.view_set = view_set
-        self.n_views = int(n_views)
+        self.num_views = check_int("num_views", num_views, minimum=1)
         self.transform = transform or ImageTransform()
         self.train = train
         self.seed = int(seed)
@@ -131,11 +156,21 @@ class VTRDataset(Dataset):
                     f"available: {sorted(rec.views)}"
                 )
             available = len(rec.views[view_set][0])
-            if available < self.n_views:
+            if available < self.num_views:
                 raise ValueError(
-                    f"Object {rec.category}/{rec.object_id} has {available} views in {view_set!r}, "
-                    f"fewer than n_views={self.n_views}"
+                    f"`num_views` must be at most the number of views of each object, got {self.num_views}; "
+                    f"object {rec.category}/{rec.object_id} has {available} in {view_set!r}"
                 )
+
+    @property
+    def n_views(self) -> int:
+        """Deprecated alias of :attr:`num_views`."""
+        warnings.warn(
+            "`VTRDataset.n_views` was renamed `num_views`; the old name will be removed in 0.3.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.num_views
 
     def __len__(self) -> int:
         return len(self.records)
@@ -145,7 +180,7 @@ class VTRDataset(Dataset):
         available = len(self.records[index].views[self.view_set][0])
         key = [self.seed, self.epoch, index] if self.train else [self.seed, index]
         rng = np.random.default_rng(key)
-        return rng.choice(available, size=self.n_views, replace=False)
+        return rng.choice(available, size=self.num_views, replace=False)
 
     def __getitem__(self, index: int) -> dict:
         rec = self.records[index]
@@ -182,9 +217,8 @@ class GeneratedSample:
 
 
 def _atomic_save_png(image: np.ndarray, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    Image.fromarray(image).save(tmp, format="PNG")
-    os.replace(tmp, path)
+    with atomic_open(path, "wb") as f:
+        Image.fromarray(image).save(f, format="PNG")
 
 
 def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
@@ -194,12 +228,12 @@ def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
     viewpoints = np.asarray(sample.viewpoints, dtype=np.float64)
     if images.ndim != 4 or images.shape[-1] != 4 or images.dtype != np.uint8:
         raise ValueError(
-            f"Generated sample {sample.category}/{sample.object_id}: images must be (T, H, W, 4) uint8, "
+            f"`images` of generated sample {sample.category}/{sample.object_id} must be (T, H, W, 4) uint8, "
             f"got {images.shape} {images.dtype}"
         )
     if viewpoints.shape != (images.shape[0], 2):
         raise ValueError(
-            f"Generated sample {sample.category}/{sample.object_id}: viewpoints must be ({images.shape[0]}, 2), "
+            f"`viewpoints` of generated sample {sample.category}/{sample.object_id} must be ({images.shape[0]}, 2), "
             f"got {viewpoints.shape}"
         )
     names = [f"{i:02d}.png" for i in range(images.shape[0])]
@@ -249,6 +283,4 @@ class GeneratedDataset(Dataset):
 
 def dump_index(entries: Sequence[dict], path: Path) -> None:
     """Write the generated-sample index as JSON, atomically (for inspection; the checkpoint is authoritative)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(list(entries), indent=1))
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(list(entries), indent=1))

@@ -8,8 +8,6 @@ disagree on a path or a field. Every reader validates what it reads and raises
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,15 +15,18 @@ from typing import Any
 
 import numpy as np
 
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.io import atomic_write
+
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "SHAPENET_SYNSETS",
     "SPLITS",
+    "UP_AXES",
     "VIEW_SETS",
     "DatasetFormatError",
     "ObjectRecord",
-    "atomic_write_bytes",
     "atomic_write_json",
     "dataset_summary",
     "image_path",
@@ -38,8 +39,10 @@ __all__ = [
 
 FORMAT_NAME = "lightning_vtr.shapenet_vtr"
 FORMAT_VERSION = 1
-VIEW_SETS = ("aligned", "hemispherical", "spherical")
 SPLITS = ("train", "val", "test")
+#: The up axes a source frame may have (``up_axis`` arguments): ``"y"`` (ShapeNet, glTF, ShapeNetVox32) is
+#: converted into the package's ``"z"`` (:mod:`lightning_vtr.geometry`).
+UP_AXES: tuple[str, ...] = ("y", "z")
 
 #: The 13 ShapeNetCore synsets of 3D-R2N2 / Pix2Vox / ShapeNet-VTR and the category names used for them.
 SHAPENET_SYNSETS: dict[str, str] = {
@@ -95,27 +98,9 @@ class ObjectRecord:
 # ------------------------------------------------------------------------------------------ writing
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` so that readers see the old file or the whole new one, never a part.
-
-    The temporary file lives in the destination directory (``os.replace`` is atomic only within one
-    file system) and has a unique name, so concurrent writers (shards) never share one.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def atomic_write_json(path: str | Path, payload: Any) -> None:
-    """Write ``payload`` as JSON atomically (see :func:`atomic_write_bytes`)."""
-    atomic_write_bytes(path, json.dumps(payload, indent=1).encode())
+    """Write ``payload`` as JSON atomically (see :func:`lightning_vtr.utils.io.atomic_write`)."""
+    atomic_write(path, json.dumps(payload, indent=1).encode())
 
 
 # ------------------------------------------------------------------------------------------ paths

@@ -7,12 +7,15 @@ Every mesh that reaches the renderer or the voxelizer goes through :func:`load_m
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import trimesh
+
+from lightning_vtr.data.format import UP_AXES
+from lightning_vtr.utils.io import atomic_open
+from lightning_vtr.utils.validation import check_choice, check_float
 
 __all__ = ["MESH_EXTENSIONS", "MeshError", "convert_up_axis", "load_mesh", "normalize_mesh", "save_mesh"]
 
@@ -47,11 +50,6 @@ class MeshError(ValueError):
         super().__init__(message)
 
 
-def _check_up_axis(up_axis: str) -> None:
-    if up_axis not in ("y", "z"):
-        raise ValueError(f"`up_axis` must be 'y' or 'z', got {up_axis!r}")
-
-
 def convert_up_axis(mesh: trimesh.Trimesh, up_axis: Literal["y", "z"]) -> trimesh.Trimesh:
     """Return a copy of ``mesh`` re-expressed in the +Z-up world frame.
 
@@ -60,7 +58,7 @@ def convert_up_axis(mesh: trimesh.Trimesh, up_axis: Literal["y", "z"]) -> trimes
     not a mirror, so the frame stays right-handed and outward normals stay outward.
     ``up_axis="z"`` returns an unchanged copy.
     """
-    _check_up_axis(up_axis)
+    check_choice("up_axis", up_axis, UP_AXES)
     out = mesh.copy()
     if up_axis == "y":
         out.apply_transform(_Y_UP_TO_Z_UP)
@@ -91,10 +89,10 @@ def normalize_mesh(mesh: trimesh.Trimesh, longest_side: float = 1.0) -> trimesh.
     With the default ``longest_side=1`` the result lies in ``[-0.5, 0.5]^3``.
 
     Raises:
+        TypeError: ``longest_side`` is not a number.
         ValueError: ``longest_side`` is not positive, or the mesh is empty, has NaN vertices or is flat.
     """
-    if not (np.isfinite(longest_side) and longest_side > 0):
-        raise ValueError(f"`longest_side` must be a positive number, got {longest_side!r}")
+    longest_side = check_float("longest_side", longest_side, minimum=0.0, min_open=True)
     problem = _check_geometry(mesh)
     if problem is not None:
         raise ValueError(f"Cannot normalise the mesh: {problem}")
@@ -148,7 +146,7 @@ def load_mesh(
         MeshError: the file is missing, of an unsupported type, unreadable, holds no triangles, has
             NaN vertices or is flat (zero extent along an axis). The message names the file.
     """
-    _check_up_axis(up_axis)
+    check_choice("up_axis", up_axis, UP_AXES)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_EXTENSIONS:
@@ -179,19 +177,14 @@ def load_mesh(
 def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
     """Write ``mesh`` to ``path`` atomically; the format follows the extension (e.g. ``.ply``, ``.obj``).
 
-    The file is written to a temporary name in the same directory and moved into place with
-    :func:`os.replace`, so a reader (or a killed build) never sees a half-written file.
+    The file is written with :func:`lightning_vtr.utils.io.atomic_open`, so a reader (or a killed build)
+    never sees a half-written file.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_EXTENSIONS:
-        raise ValueError(f"Cannot save mesh to '{path}': unsupported extension {suffix!r}; expected one of {MESH_EXTENSIONS}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{suffix}")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            mesh.export(f, file_type=suffix[1:])
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        raise ValueError(
+            f"`path` must have a mesh extension ({', '.join(MESH_EXTENSIONS)}), got '{path}' (extension {suffix!r})"
+        )
+    with atomic_open(path, "wb") as f:
+        mesh.export(f, file_type=suffix[1:])

@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 
 from lightning_vtr.data.mesh import normalize_mesh
+from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = ["CATEGORIES", "make_object", "object_id", "object_variant"]
 
@@ -424,7 +425,6 @@ def _vessel(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
     hull_h = beam * rng.uniform(0.35, 0.55)
     kind = rng.choice(["sailboat", "motorboat", "ship"])
     bow = length * rng.uniform(0.2, 0.3)
-    stern_len = length - bow
     # The hull: the convex hull of a flat transom (stern, -X), a full-beam midship section and
     # a raked stem (bow, +X); the keel is narrower than the deck.
     keel = rng.uniform(0.3, 0.7)
@@ -476,17 +476,16 @@ _BUILDERS: dict[str, _Builder] = {
 CATEGORIES: tuple[str, ...] = tuple(sorted(_BUILDERS))
 
 
-def _check_args(category: str, index: int) -> None:
-    if category not in _BUILDERS:
-        raise ValueError(f"Unknown procedural `category` {category!r}; expected one of {', '.join(CATEGORIES)}")
-    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
-        raise ValueError(f"`index` must be a non-negative integer, got {index!r}")
+def _check_args(category: str, index: int) -> int:
+    """``index`` as an int, after checking both arguments."""
+    check_choice("category", category, CATEGORIES)
+    return check_int("index", index, minimum=0)
 
 
 def object_id(category: str, index: int) -> str:
     """The id of the ``index``-th procedural object of ``category``, e.g. ``"chair_0007"``."""
-    _check_args(category, index)
-    return f"{category}_{int(index):04d}"
+    index = _check_args(category, index)
+    return f"{category}_{index:04d}"
 
 
 def _rng(category: str, index: int, seed: int) -> np.random.Generator:
@@ -495,7 +494,7 @@ def _rng(category: str, index: int, seed: int) -> np.random.Generator:
 
 
 def _build(category: str, index: int, seed: int) -> tuple[str, trimesh.Trimesh]:
-    _check_args(category, index)
+    index = _check_args(category, index)
     variant, parts = _BUILDERS[category](_rng(category, index, seed))
     return variant, normalize_mesh(trimesh.util.concatenate(parts))
 
@@ -516,6 +515,7 @@ def make_object(category: str, index: int, seed: int = 0) -> trimesh.Trimesh:
 
     Raises:
         ValueError: for an unknown ``category`` or a negative ``index``.
+        TypeError: for an ``index`` that is not an int.
     """
     return _build(category, index, seed)[1]
 

@@ -42,6 +42,7 @@ import numpy as np
 
 from lightning_vtr.data.format import SHAPENET_SYNSETS, SPLITS, DatasetFormatError, ObjectRecord
 from lightning_vtr.geometry import wrap_yaw
+from lightning_vtr.utils.validation import check_choice
 
 __all__ = [
     "R2N2_MAX_CAMERA_DISTANCE",
@@ -151,8 +152,7 @@ class ShapeNetRenderingSource:
         self.rendering_root = Path(rendering_root)
         self.voxel_root = Path(voxel_root)
         self.split_file = Path(split_file)
-        if missing not in ("warn", "skip", "error"):
-            raise ValueError(f"`missing` must be 'warn', 'skip' or 'error', got {missing!r}")
+        check_choice("missing", missing, ("warn", "skip", "error"))
         for name, path in (("rendering_root", self.rendering_root), ("voxel_root", self.voxel_root)):
             if not path.is_dir():
                 raise FileNotFoundError(f"`{name}` {str(path)!r} is not a directory")
@@ -206,7 +206,10 @@ class ShapeNetRenderingSource:
             known = {self._category(e) for e in entries} | {str(e["taxonomy_id"]) for e in entries}
             unknown = sorted(set(self.categories) - known)
             if unknown:
-                raise ValueError(f"`categories` {unknown} are not in the split file {self.split_file}; it has {sorted(known)}")
+                raise ValueError(
+                    f"`categories` must be in the split file {self.split_file} (it has {sorted(known)}), "
+                    f"got unknown {unknown}"
+                )
         records, skipped = [], []
         for entry in entries:
             taxonomy, category = str(entry["taxonomy_id"]), self._category(entry)

@@ -23,6 +23,8 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
+from lightning_vtr.utils.validation import check_int, check_type
+
 __all__ = ["surface_voxels", "voxelize"]
 
 # Lattice spacing along a triangle, in voxels: small enough that a voxel the surface crosses by a
@@ -30,21 +32,14 @@ __all__ = ["surface_voxels", "voxelize"]
 _SAMPLE_SPACING = 1.0 / 3.0
 
 
-def _check_resolution(resolution: int) -> int:
-    if isinstance(resolution, bool) or not float(resolution).is_integer() or int(resolution) < 1:
-        raise ValueError(f"`resolution` must be a positive integer, got {resolution!r}")
-    return int(resolution)
-
-
 def _check_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise TypeError(f"`mesh` must be a trimesh.Trimesh, got {type(mesh).__name__}")
+    check_type("mesh", mesh, trimesh.Trimesh, "trimesh.Trimesh")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if len(faces) == 0:
-        raise ValueError("`mesh` has no triangles; cannot voxelize an empty mesh")
+        raise ValueError("`mesh` must have at least one triangle, got one with no triangles")
     if not np.isfinite(vertices).all():
-        raise ValueError("`mesh` has NaN or infinite vertex coordinates")
+        raise ValueError("`mesh` must have finite vertex coordinates, got NaN or infinite ones")
     return vertices, faces
 
 
@@ -54,7 +49,7 @@ def surface_voxels(mesh: trimesh.Trimesh, resolution: int = 32) -> np.ndarray:
     Indices follow :func:`lightning_vtr.geometry.voxel_centers`: voxel ``[i, j, k]`` covers
     ``[i/R - 0.5, (i+1)/R - 0.5) x ...`` in ``(x, y, z)``. Geometry outside ``[-0.5, 0.5]^3`` is ignored.
     """
-    resolution = _check_resolution(resolution)
+    resolution = check_int("resolution", resolution, minimum=1)
     vertices, faces = _check_mesh(mesh)
     # Continuous voxel coordinates: voxel (i, j, k) is the unit cube [i, i+1) x [j, j+1) x [k, k+1).
     tri = (vertices[faces] + 0.5) * resolution  # (F, 3 corners, 3)

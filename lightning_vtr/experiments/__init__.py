@@ -1,5 +1,11 @@
 """The paper's reproduction harness: pretraining and fine-tuning runs, the robustness report, its tables.
 
+* :mod:`~lightning_vtr.experiments.training`: the experiment config, pretrain, fine-tune with a view
+  strategy, evaluate; the registries of models and strategies.
+* :mod:`~lightning_vtr.experiments.comparison`: one model with and without the callback (the examples).
+* :mod:`~lightning_vtr.experiments.report`: ``lightning-vtr report``, Table 1 and the ablations.
+* :mod:`~lightning_vtr.experiments.tables`: the Table-1 layout.
+
 Not needed to use the plugin: :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` with any
-Trainer and model is all the paper's method requires.
+Trainer and model is all the paper's method requires (``examples/quickstart.py``).
 """

@@ -9,7 +9,7 @@ Hemispherical / Spherical, and runs the paper's ablations of the error-guided me
 * ``pool``: with vs without the per-category viewpoint pool (``use_pool=False``);
 * ``single_view``: the "none" and "error_guided" fine-tuned models tested with 1 input view.
 
-It writes into ``out``:
+It writes into ``out`` (the experiment's, :attr:`ReportConfig.experiment`):
 
 * ``report.md``: a header (command, budget, wall time), Table 1 (rows None-VTR / Nature / Random / VIAT /
   MVTN / Ours, columns view set x mIoU\@0.4 and F-score, in %), then the K, pool and single-view
@@ -23,10 +23,10 @@ Resumable: a finished run (its ``results.json``), a finished pretraining (``pret
 finished single-view evaluation are reused, and an interrupted fit resumes from its ``last.ckpt``; so a
 killed report re-run only does what is missing.
 
-Default budget (:class:`ReportConfig`): tiny Pix2Vox++ on the embedded dataset, 1 seed, 30 pretraining
-epochs, 10 fine-tuning epochs per strategy, 5 % of training objects searched per epoch. Planned from
-measured figures on 2 CPU cores (tiny Pix2Vox++ ~19 samples/s; 210 training objects, so ~12-15 s per
-epoch; +1-3 s per epoch for the callback's search and rendering; VIAT renders population x iterations x 3
+Default budget (:class:`ReportConfig`, :func:`default_experiment`): tiny Pix2Vox++ on the embedded dataset,
+1 seed, 30 pretraining epochs, 10 fine-tuning epochs per strategy, 5 % of training objects searched per
+epoch. Planned from measured figures on 2 CPU cores (tiny Pix2Vox++ ~19 samples/s; 210 training objects,
+so ~12-15 s per epoch; +1-3 s per epoch for the callback's search and rendering; VIAT renders population x iterations x 3
 = 120 views per searched object, ~+25 s per epoch): pretraining ~7 min, 10 fine-tuning runs (6
 strategies, 3 extra K, no pool) ~30 min, VIAT's extra search ~4 min, 12 test passes ~4 min: about
 45-55 minutes in total, an estimate rather than a measurement. ``lightning-vtr report`` prints the
@@ -38,20 +38,24 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import shlex
 import statistics
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ABLATIONS", "STRATEGIES", "STRATEGY_TITLES", "ReportConfig", "run_report"]
+from lightning_vtr.experiments import training
+from lightning_vtr.experiments.tables import VIEW_SET_TITLES, format_robustness_table
+from lightning_vtr.experiments.training import STRATEGIES, ExperimentConfig
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
-#: The comparison strategies in the paper's row order.
-STRATEGIES: tuple[str, ...] = ("none", "nature", "random", "viat", "mvtn", "error_guided")
-#: Row titles of Table 1.
+__all__ = ["ABLATIONS", "STRATEGIES", "STRATEGY_TITLES", "ReportConfig", "default_experiment", "run_report"]
+
+#: Row titles of Table 1, per strategy of :data:`STRATEGIES` (the paper's row order).
 STRATEGY_TITLES: dict[str, str] = {
     "none": "None-VTR",
     "nature": "Nature",
@@ -62,34 +66,38 @@ STRATEGY_TITLES: dict[str, str] = {
 }
 #: The ablations of the error-guided method the report can run.
 ABLATIONS: tuple[str, ...] = ("k", "pool", "single_view")
-_VIEW_SETS = ("aligned", "hemispherical", "spherical")
 _METRICS = ("iou@0.4", "fscore")
 _MAIN_K = 30  # the paper's K; the "error_guided" run uses it
 
 
+def default_experiment(**changes: Any) -> ExperimentConfig:
+    """The report's default experiment with ``changes``: tiny Pix2Vox++ on the embedded dataset, 30 pretraining
+    and 10 fine-tuning epochs, batch size 8, written to ``runs/report`` (see the module docstring for the time).
+
+    Example::
+
+        run_report(ReportConfig(default_experiment(data="/data/shapenet_vtr", out="runs/shapenet"), seeds=[0, 1, 2]))
+    """
+    defaults = {"out": "runs/report", "pretrain_epochs": 30, "finetune_epochs": 10, "batch_size": 8}
+    return ExperimentConfig(**{**defaults, **changes})
+
+
 @dataclass
 class ReportConfig:
-    """What the report trains and where it writes.
+    """What the report trains and where it writes: one experiment, repeated per seed and per strategy.
 
     Attributes:
-        model: ``"pix2vox"`` or ``"lrgt"``.
-        preset: model preset (``"tiny"`` trains on a laptop).
-        data: a ShapeNet-VTR directory; ``None`` uses the embedded procedural dataset.
-        out: output directory (runs, tables, CSV, chart).
+        experiment: model, data, budget and Trainer settings of every run
+            (:class:`~lightning_vtr.experiments.training.ExperimentConfig`; default
+            :func:`default_experiment`). Its ``out`` is the report's directory (runs go to
+            ``out/seed_<s>/``, tables, CSV and chart to ``out``) and its ``seed`` is replaced by each of
+            ``seeds`` (:meth:`seed_config`). The report needs ``pretrain_epochs`` and ``finetune_epochs``
+            of at least 1.
         seeds: one full comparison per seed (pretraining included); several give mean ± std.
-        pretrain_epochs: epochs on Aligned before any view strategy.
-        finetune_epochs: fine-tuning epochs, the same budget for every strategy and ablation.
         strategies: the rows of Table 1 (any of :data:`STRATEGIES`).
         ablations: which of :data:`ABLATIONS` to run (they add the "error_guided" run, and
             ``single_view`` the "none" run, when ``strategies`` lacks them).
         k_values: bin intervals of the K ablation, degrees (each must divide 180).
-        fraction: share of training objects searched per epoch by the callback (the paper's 5 %).
-        finetune_lr: fine-tuning learning-rate schedule, ``"cosine"`` (annealed to 0, the default) or
-            ``"constant"`` (see :class:`~lightning_vtr.experiments.training.ExperimentConfig`).
-        batch_size, num_workers, image_size, accelerator, devices, precision: as in
-            :class:`~lightning_vtr.experiments.training.ExperimentConfig`.
-        embedded, model_kwargs, trainer_kwargs: passed to every
-            :class:`~lightning_vtr.experiments.training.ExperimentConfig`.
         selector_kwargs: per strategy name, arguments of its selector (e.g. ``{"viat": {"population": 4}}``).
         callback_kwargs: arguments of every strategy's
             :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` (e.g. ``{"progress_bar": False}``).
@@ -97,60 +105,41 @@ class ReportConfig:
         command: the command line shown in the header (``None``: the equivalent ``lightning-vtr report``).
     """
 
-    model: str = "pix2vox"
-    preset: str = "tiny"
-    data: str | None = None
-    out: str = "runs/report"
+    experiment: ExperimentConfig = field(default_factory=default_experiment)
     seeds: Sequence[int] = (0,)
-    pretrain_epochs: int = 30
-    finetune_epochs: int = 10
     strategies: Sequence[str] = STRATEGIES
     ablations: Sequence[str] = ABLATIONS
     k_values: Sequence[int] = (15, 30, 60, 90)
-    fraction: float = 0.05
-    finetune_lr: str = "cosine"
-    batch_size: int = 8
-    num_workers: int = 0
-    image_size: int | None = None
-    accelerator: str = "auto"
-    devices: int | str = 1
-    precision: str = "32-true"
-    embedded: dict[str, Any] = field(default_factory=dict)
-    model_kwargs: dict[str, Any] = field(default_factory=dict)
-    trainer_kwargs: dict[str, Any] = field(default_factory=dict)
     selector_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)
     callback_kwargs: dict[str, Any] = field(default_factory=dict)
     synthesizer: Any = None
     command: str | None = None
 
     def __post_init__(self) -> None:
-        self.seeds = [int(s) for s in self.seeds]
+        check_type("experiment", self.experiment, ExperimentConfig)
+        for name in ("pretrain_epochs", "finetune_epochs"):
+            check_int(f"experiment.{name}", getattr(self.experiment, name), minimum=1)
+        self.seeds = [check_int("seeds", s) for s in self.seeds]
         self.strategies = list(self.strategies)
         self.ablations = list(self.ablations)
-        self.k_values = [int(k) for k in self.k_values]
-        if not self.seeds:
-            raise ValueError("`seeds` must name at least one seed, got an empty list")
-        if len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"`seeds` must not repeat a seed, got {self.seeds}")
-        unknown = [s for s in self.strategies if s not in STRATEGIES]
-        if unknown or not self.strategies:
-            raise ValueError(f"`strategies` must be a non-empty subset of {list(STRATEGIES)}, got {self.strategies}")
-        unknown = [a for a in self.ablations if a not in ABLATIONS]
-        if unknown:
-            raise ValueError(f"`ablations` must be a subset of {list(ABLATIONS)}, got {self.ablations}")
-        bad = [k for k in self.k_values if k <= 0 or 180 % k]
+        self.k_values = [check_int("k_values", k, minimum=1) for k in self.k_values]
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"`seeds` must be a non-empty list of distinct seeds, got {self.seeds}")
+        if not self.strategies:
+            raise ValueError(f"`strategies` must name at least one of {list(STRATEGIES)}, got []")
+        for strategy in self.strategies:
+            check_choice("strategies", strategy, STRATEGIES)
+        for ablation in self.ablations:
+            check_choice("ablations", ablation, ABLATIONS)
+        bad = [k for k in self.k_values if 180 % k]
         if bad:
             raise ValueError(f"`k_values` must divide 180 (degrees), got {bad}")
-        from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES
+        for strategy in self.selector_kwargs:
+            check_choice("selector_kwargs", strategy, STRATEGIES)
 
-        if self.finetune_lr not in FINETUNE_LR_SCHEDULES:
-            raise ValueError(f"`finetune_lr` must be one of {FINETUNE_LR_SCHEDULES}, got {self.finetune_lr!r}")
-        for name in ("pretrain_epochs", "finetune_epochs"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}")
-        unknown = [s for s in self.selector_kwargs if s not in STRATEGIES]
-        if unknown:
-            raise ValueError(f"`selector_kwargs` keys must be strategy names {list(STRATEGIES)}, got {unknown}")
+    def seed_config(self, seed: int) -> ExperimentConfig:
+        """The :class:`~lightning_vtr.experiments.training.ExperimentConfig` of every run of ``seed``."""
+        return replace(self.experiment, seed=seed, out=str(Path(self.experiment.out) / f"seed_{seed}"))
 
 
 @dataclass(frozen=True)
@@ -186,43 +175,13 @@ def _plan(config: ReportConfig) -> list[_Run]:
     return runs
 
 
-def _experiment_config(config: ReportConfig, seed: int) -> Any:
-    from lightning_vtr.experiments.training import ExperimentConfig
-
-    return ExperimentConfig(
-        model=config.model,
-        preset=config.preset,
-        data=config.data,
-        pretrain_epochs=config.pretrain_epochs,
-        finetune_epochs=config.finetune_epochs,
-        batch_size=config.batch_size,
-        num_workers=config.num_workers,
-        image_size=config.image_size,
-        fraction=config.fraction,
-        finetune_lr=config.finetune_lr,
-        seed=seed,
-        accelerator=config.accelerator,
-        devices=config.devices,
-        precision=config.precision,
-        out=str(Path(config.out) / f"seed_{seed}"),
-        embedded=dict(config.embedded),
-        model_kwargs=dict(config.model_kwargs),
-        trainer_kwargs=dict(config.trainer_kwargs),
-    )
-
-
 def _write_json(path: Path, payload: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(payload, indent=1))
-    os.replace(tmp, path)  # atomic: a killed report never leaves a half-written cache
+    atomic_write(path, json.dumps(payload, indent=1))  # a killed report never leaves a half-written cache
 
 
-def _single_view(run: _Run, exp: Any, source: dict) -> dict:
+def _single_view(run: _Run, exp: ExperimentConfig, source: dict) -> dict:
     """Test the fine-tuned model of ``run.single_view_of`` with 1 input view; cached in ``results.json``."""
     import torch
-
-    from lightning_vtr.experiments.training import evaluate, make_datamodule, make_model
 
     run_dir = Path(exp.out) / run.name
     result_file = run_dir / "results.json"
@@ -231,14 +190,14 @@ def _single_view(run: _Run, exp: Any, source: dict) -> dict:
     ckpt = Path(exp.out) / run.single_view_of / "checkpoints" / "last.ckpt"
     if not ckpt.is_file():
         raise FileNotFoundError(f"single-view evaluation needs the fine-tuned checkpoint {ckpt}, which does not exist")
-    model = make_model(exp)
+    model = training.make_model(exp)
     model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
     start = time.perf_counter()
-    results = evaluate(model, make_datamodule(exp, model, n_views=1), exp, run_dir)
+    results = training.evaluate(model, training.make_datamodule(exp, model, num_views=1), exp, run_dir)
     payload = {
         "strategy": run.strategy,
         "source_run": run.single_view_of,
-        "n_views": 1,
+        "num_views": 1,
         # The model is the source run's: its training time is the one to compare.
         "train_seconds": source["train_seconds"],
         "eval_seconds": time.perf_counter() - start,
@@ -263,44 +222,29 @@ def _table(
     rows: dict[str, str], payloads: dict[str, dict[int, dict]], metrics: Sequence[str], seeds: list[int]
 ) -> str:
     """A Table-1-layout Markdown table of ``rows`` (title -> run name); ``mean ± std`` with several seeds."""
-    from lightning_vtr.experiments.tables import format_robustness_table
-
     means: dict[str, dict[str, dict[str, float]]] = {}
     stds: dict[str, dict[str, dict[str, float]]] = {}
     for title, run in rows.items():
         means[title], stds[title] = {}, {}
-        for view_set in _VIEW_SETS:
+        for view_set in VIEW_SETS:
             for metric in metrics:
                 values = [payloads[run][s]["results"].get(view_set, {}).get(metric, math.nan) for s in seeds]
                 mean, std = _aggregate(values)
                 means[title].setdefault(view_set, {})[metric] = mean
                 stds[title].setdefault(view_set, {})[metric] = std
-    table = format_robustness_table(means, metric_names=tuple(metrics))
-    if len(seeds) == 1:
-        return table
-    # Same layout for the spreads, then merge cell by cell: the table stays the module's one format.
-    spread = format_robustness_table(stds, metric_names=tuple(metrics)).splitlines()
-    lines = table.splitlines()
-    merged = lines[:2]
-    for line, line_std in zip(lines[2:], spread[2:]):
-        cells = line.strip("|").split("|")
-        cells_std = line_std.strip("|").split("|")
-        out = [cells[0].strip()] + [
-            a.strip() if a.strip() == "-" else f"{a.strip()} ± {b.strip()}" for a, b in zip(cells[1:], cells_std[1:])
-        ]
-        merged.append("| " + " | ".join(out) + " |")
-    return "\n".join(merged)
+    return format_robustness_table(means, std=stds if len(seeds) > 1 else None, metric_names=tuple(metrics))
 
 
 def _equivalent_command(config: ReportConfig) -> str:
-    words = ["lightning-vtr", "report", "--model", config.model, "--preset", config.preset]
-    if config.data:
-        words += ["--data", config.data]
-    words += ["--out", config.out, "--seeds", *map(str, config.seeds)]
-    words += ["--pretrain-epochs", str(config.pretrain_epochs), "--finetune-epochs", str(config.finetune_epochs)]
-    words += ["--strategies", ",".join(config.strategies), "--fraction", str(config.fraction)]
-    if config.finetune_lr != "cosine":
-        words += ["--finetune-lr", config.finetune_lr]
+    exp = config.experiment
+    words = ["lightning-vtr", "report", "--model", exp.model, "--preset", exp.preset]
+    if exp.data:
+        words += ["--data", exp.data]
+    words += ["--out", exp.out, "--seeds", *map(str, config.seeds)]
+    words += ["--pretrain-epochs", str(exp.pretrain_epochs), "--finetune-epochs", str(exp.finetune_epochs)]
+    words += ["--strategies", ",".join(config.strategies), "--fraction", str(exp.fraction)]
+    if exp.finetune_lr != "cosine":
+        words += ["--finetune-lr", exp.finetune_lr]
     if not config.ablations:
         words.append("--no-ablations")
     return shlex.join(words)
@@ -313,7 +257,7 @@ def _write_csv(path: Path, runs: list[_Run], payloads: dict[str, dict[int, dict]
         for run in runs:
             for seed in seeds:
                 payload = payloads[run.name][seed]
-                for view_set in _VIEW_SETS:
+                for view_set in VIEW_SETS:
                     values = payload["results"].get(view_set, {})
                     writer.writerow(
                         [run.name, run.strategy, seed, view_set]
@@ -323,33 +267,28 @@ def _write_csv(path: Path, runs: list[_Run], payloads: dict[str, dict[int, dict]
 
 
 def _write_chart(path: Path, rows: dict[str, str], payloads: dict[str, dict[int, dict]], seeds: list[int]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")  # headless; no display on training machines
-    import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.figure import Figure  # no pyplot: no global figure manager, no backend switch
 
-    from lightning_vtr.experiments.tables import VIEW_SET_TITLES
-
-    fig, ax = plt.subplots(figsize=(8, 4.2), dpi=120)
+    fig = Figure(figsize=(8, 4.2), dpi=120, layout="tight")
+    ax = fig.subplots()
     width = 0.8 / max(1, len(rows))
-    x = np.arange(len(_VIEW_SETS))
+    x = np.arange(len(VIEW_SETS))
     for i, (title, run) in enumerate(rows.items()):
         stats = [
             _aggregate([payloads[run][s]["results"].get(v, {}).get("iou@0.4", math.nan) for s in seeds])
-            for v in _VIEW_SETS
+            for v in VIEW_SETS
         ]
         means = [100 * m for m, _ in stats]
         errors = [100 * e for _, e in stats] if len(seeds) > 1 else None
         ax.bar(x - 0.4 + (i + 0.5) * width, means, width, yerr=errors, capsize=3 if errors else 0, label=title)
-    ax.set_xticks(x, [VIEW_SET_TITLES[v] for v in _VIEW_SETS])
+    ax.set_xticks(x, [VIEW_SET_TITLES[v] for v in VIEW_SETS])
     ax.set_ylabel("mIoU@0.4 (%)")
-    ax.set_title("Reconstruction IoU per test view set" + (f" (mean ± std, {len(seeds)} seeds)" if len(seeds) > 1 else ""))
+    spread = f" (mean ± std, {len(seeds)} seeds)" if len(seeds) > 1 else ""
+    ax.set_title(f"Reconstruction IoU per test view set{spread}")
     ax.legend(ncol=3, fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 # ------------------------------------------------------------------------------------------ entry point
@@ -368,23 +307,22 @@ def run_report(config: ReportConfig) -> dict:
     Raises:
         ValueError: for an invalid configuration (from :class:`ReportConfig`).
     """
-    from lightning_vtr.experiments.training import pretrain, run_strategy
-
     start = time.perf_counter()
-    out = Path(config.out)
+    exp = config.experiment
+    out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     runs = _plan(config)
     payloads: dict[str, dict[int, dict]] = {run.name: {} for run in runs}
     for seed in config.seeds:
-        exp = _experiment_config(config, seed)
-        pretrained = pretrain(exp)
+        seed_exp = config.seed_config(seed)
+        pretrained = training.pretrain(seed_exp)
         for run in runs:
             if run.single_view_of is not None:
-                payloads[run.name][seed] = _single_view(run, exp, payloads[run.single_view_of][seed])
+                payloads[run.name][seed] = _single_view(run, seed_exp, payloads[run.single_view_of][seed])
                 continue
-            payloads[run.name][seed] = run_strategy(
+            payloads[run.name][seed] = training.run_strategy(
                 run.strategy,
-                exp,
+                seed_exp,
                 pretrained,
                 run_name=run.name,
                 synthesizer=config.synthesizer,
@@ -406,10 +344,10 @@ def run_report(config: ReportConfig) -> dict:
         "",
         f"Command: `{config.command or _equivalent_command(config)}`",
         "",
-        f"Budget: {config.model} ({config.preset}) on {config.data or 'the embedded procedural dataset'}; "
-        f"seeds {', '.join(map(str, seeds))}; pretraining {config.pretrain_epochs} epochs on Aligned, then "
-        f"{config.finetune_epochs} fine-tuning epochs per strategy ({config.finetune_lr} learning rate); "
-        f"{100 * config.fraction:g} % of training objects "
+        f"Budget: {exp.model} ({exp.preset}) on {exp.data or 'the embedded procedural dataset'}; "
+        f"seeds {', '.join(map(str, seeds))}; pretraining {exp.pretrain_epochs} epochs on Aligned, then "
+        f"{exp.finetune_epochs} fine-tuning epochs per strategy ({exp.finetune_lr} learning rate); "
+        f"{100 * exp.fraction:g} % of training objects "
         f"searched per epoch. Total wall time: {total / 60:.1f} min over {len(timing['invocations'])} invocation(s) "
         f"(this one {wall / 60:.1f} min).",
         "",

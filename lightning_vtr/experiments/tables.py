@@ -9,10 +9,15 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 
-__all__ = ["VIEW_SET_TITLES", "format_robustness_table", "results_from_test_output"]
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.validation import check_choice
 
-#: Column groups of the table, in the paper's order, with their printed titles.
-VIEW_SET_TITLES: dict[str, str] = {"aligned": "Aligned", "hemispherical": "Hemispherical", "spherical": "Spherical"}
+__all__ = ["TABLE_FORMATS", "VIEW_SET_TITLES", "format_cell", "format_robustness_table", "results_from_test_output"]
+
+#: Printed titles of the view sets, the table's column groups (in the paper's order, :data:`VIEW_SETS`).
+VIEW_SET_TITLES: dict[str, str] = {name: name.capitalize() for name in VIEW_SETS}
+#: Output formats of :func:`format_robustness_table`.
+TABLE_FORMATS = ("markdown", "text")
 _METRIC_TITLES = {"fscore": "F-score"}
 
 
@@ -46,20 +51,46 @@ def results_from_test_output(outputs: Iterable[Mapping[str, float]], method: str
     return {method: results} if method is not None else results
 
 
+def format_cell(value: float | None, std: float | None = None, *, digits: int = 2) -> str:
+    """One table cell in percent: ``"64.63"``, ``"60.00 ± 14.14"`` with a spread, ``"-"`` for a missing value.
+
+    Args:
+        value: a fraction in ``[0, 1]`` (a mean over seeds, say); ``None`` or NaN print ``-``.
+        std: its spread, also a fraction; ``None`` or NaN print the value alone.
+        digits: decimals of the percentages.
+
+    Example:
+        >>> format_cell(0.6), format_cell(0.6, 0.1414), format_cell(float("nan"), 0.1)
+        ('60.00', '60.00 ± 14.14', '-')
+    """
+    if _missing(value):
+        return "-"
+    text = f"{100 * value:.{digits}f}"
+    return text if _missing(std) else f"{text} ± {100 * std:.{digits}f}"
+
+
+def _missing(value: float | None) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
 def format_robustness_table(
     results: Mapping[str, Mapping[str, Mapping[str, float]]],
     *,
+    std: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None,
     metric_names: Sequence[str] = ("iou@0.4", "fscore"),
     fmt: str = "markdown",
-    view_sets: Sequence[str] = tuple(VIEW_SET_TITLES),
+    view_sets: Sequence[str] = VIEW_SETS,
     digits: int = 2,
 ) -> str:
     """Format ``{method: {view_set: {metric: value}}}`` like the paper's Table 1, values in %.
 
-    Missing values print as ``-``.
+    Missing values print as ``-``; each cell is :func:`format_cell` of its value (and spread).
 
     Args:
-        results: values in ``[0, 1]`` per method, view set and metric (e.g. ``iou@0.4``, ``fscore``).
+        results: values in ``[0, 1]`` per method, view set and metric (e.g. ``iou@0.4``, ``fscore``);
+            means, when ``std`` is given.
+        std: spreads in the same layout (e.g. the sample standard deviation over seeds); a cell with
+            one prints ``mean ± std``, a cell without one the mean alone.
         metric_names: metrics shown under each view set, in order.
         fmt: ``"markdown"`` (a pipe table) or ``"text"`` (aligned columns).
         view_sets: the column groups, in order.
@@ -78,21 +109,21 @@ def format_robustness_table(
         |---|---|---|
         | Pix2Vox++ | 64.63 | 42.02 |
     """
-    if fmt not in ("markdown", "text"):
-        raise ValueError(f"`fmt` must be 'markdown' or 'text', got {fmt!r}")
+    check_choice("fmt", fmt, TABLE_FORMATS)
+    spreads = std or {}
 
-    def cell(value: float | None) -> str:
-        if value is None or (isinstance(value, float) and math.isnan(value)):
-            return "-"
-        return f"{100 * value:.{digits}f}"
+    def cells(method: str, per_set: Mapping[str, Mapping[str, float]]) -> list[str]:
+        spread = spreads.get(method, {})
+        return [
+            format_cell(per_set.get(s, {}).get(m), spread.get(s, {}).get(m), digits=digits)
+            for s in view_sets
+            for m in metric_names
+        ]
 
     header = ["Method"] + [
         f"{VIEW_SET_TITLES.get(s, s)} {_metric_title(m)}" for s in view_sets for m in metric_names
     ]
-    rows = [
-        [method] + [cell(per_set.get(s, {}).get(m)) for s in view_sets for m in metric_names]
-        for method, per_set in results.items()
-    ]
+    rows = [[method, *cells(method, per_set)] for method, per_set in results.items()]
     if fmt == "markdown":
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(row) + " |" for row in rows]

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
-from collections.abc import Callable
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,31 +17,49 @@ from typing import Any
 import lightning as L
 import torch
 
+from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data.datamodule import VTRDataModule
+from lightning_vtr.experiments.tables import results_from_test_output
+from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.lrgt import LRGT
+from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+from lightning_vtr.selection import SELECTORS, make_selector
+from lightning_vtr.utils.deprecation import renamed_argument
+from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = [
+    "FINETUNE_LR_SCHEDULES",
+    "MODELS",
+    "STRATEGIES",
     "CosineFineTuning",
     "ExperimentConfig",
-    "MODEL_CLASSES",
     "evaluate",
     "make_datamodule",
     "make_model",
     "make_strategy",
-    "run_strategy",
     "pretrain",
+    "run_strategy",
 ]
 
-
-def _model_classes() -> dict[str, type]:
-    from lightning_vtr.models.lrgt import LRGT
-    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
-
-    return {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
-
-
-MODEL_CLASSES = ("pix2vox", "lrgt")
+#: Model name (``ExperimentConfig.model``, ``lightning-vtr report --model``) -> model class.
+MODELS: dict[str, type[VoxelReconstructionModule]] = {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
 #: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
 FINETUNE_LR_SCHEDULES = ("cosine", "constant")
+#: View strategy names of :func:`make_strategy`, in the row order of the paper's Table 1: ``"none"`` (no
+#: augmentation), then every selector of :data:`lightning_vtr.selection.SELECTORS`.
+STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
+
+
+def __getattr__(name: str) -> Any:
+    if name == "MODEL_CLASSES":  # the model names before 0.2
+        warnings.warn(
+            "`MODEL_CLASSES` is deprecated and will be removed in 0.3; use the keys of `MODELS`.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return tuple(MODELS)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -50,14 +67,15 @@ class ExperimentConfig:
     """One experiment's budget and settings.
 
     Attributes:
-        model: ``"pix2vox"`` or ``"lrgt"``.
+        model: a name in :data:`MODELS` (``"pix2vox"`` or ``"lrgt"``).
         preset: the model preset (``"tiny"`` on a laptop, ``"paper"`` for the published configuration).
         data: a ShapeNet-VTR directory; ``None`` uses the embedded procedural dataset.
         pretrain_epochs: epochs on Aligned before any view strategy (the paper's pre-trained model).
         finetune_epochs: epochs of fine-tuning, the same for every strategy (including none).
         batch_size, num_workers, seed: as usual. ``image_size`` ``None`` takes the preset's.
         fraction: share of training objects searched per epoch by the callback.
-        accelerator, devices, precision: passed to the Trainer.
+        accelerator, devices, precision: passed to the Trainer; ``devices`` given as a string of digits
+            (from a command line) becomes an int.
         out: where runs are written.
         embedded: options of the embedded procedural dataset (``data=None``).
         finetune_lr: learning-rate schedule of fine-tuning, the same for every strategy: ``"cosine"``
@@ -89,8 +107,9 @@ class ExperimentConfig:
     trainer_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.finetune_lr not in FINETUNE_LR_SCHEDULES:
-            raise ValueError(f"`finetune_lr` must be one of {FINETUNE_LR_SCHEDULES}, got {self.finetune_lr!r}")
+        check_choice("finetune_lr", self.finetune_lr, FINETUNE_LR_SCHEDULES)
+        if isinstance(self.devices, str) and self.devices.isdigit():
+            self.devices = int(self.devices)
 
 
 class CosineFineTuning(L.Callback):
@@ -103,9 +122,7 @@ class CosineFineTuning(L.Callback):
     """
 
     def __init__(self, epochs: int) -> None:
-        if epochs < 1:
-            raise ValueError(f"`epochs` must be >= 1, got {epochs}")
-        self.epochs = epochs
+        self.epochs = check_int("epochs", epochs, minimum=1)
 
     def factor(self, epoch: int) -> float:
         return 0.5 * (1.0 + math.cos(math.pi * min(epoch, self.epochs) / self.epochs))
@@ -118,18 +135,26 @@ class CosineFineTuning(L.Callback):
                 group["lr"] = group["initial_lr"] * factor
 
 
-def make_model(config: ExperimentConfig) -> L.LightningModule:
-    classes = _model_classes()
-    if config.model not in classes:
-        raise ValueError(f"`model` must be one of {sorted(classes)}, got {config.model!r}")
-    return classes[config.model](preset=config.preset, **config.model_kwargs)
+def make_model(config: ExperimentConfig) -> VoxelReconstructionModule:
+    """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``."""
+    return MODELS[check_choice("model", config.model, MODELS)](preset=config.preset, **config.model_kwargs)
 
 
-def make_datamodule(config: ExperimentConfig, model: L.LightningModule, n_views: int | None = None) -> VTRDataModule:
-    """The experiment's datamodule; ``n_views`` ``None`` takes the model's (tests with another count need it)."""
+def make_datamodule(
+    config: ExperimentConfig,
+    model: L.LightningModule,
+    num_views: int | None = None,
+    *,
+    n_views: int | None = None,
+) -> VTRDataModule:
+    """The experiment's datamodule; ``num_views`` ``None`` takes the model's (tests with another count need it).
+
+    ``n_views`` is the deprecated name of ``num_views`` (removed in 0.3).
+    """
+    num_views = renamed_argument("n_views", n_views, "num_views", num_views)
     return VTRDataModule(
         config.data,
-        n_views=n_views or model.num_views,
+        num_views=num_views or model.num_views,
         image_size=config.image_size or model.image_size,
         batch_size=config.batch_size,
         num_workers=config.num_workers,
@@ -159,8 +184,6 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
 
 def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConfig, run_dir: Path) -> dict:
     """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries)."""
-    from lightning_vtr.experiments.tables import results_from_test_output
-
     kwargs: dict[str, Any] = dict(
         accelerator=config.accelerator, default_root_dir=str(run_dir), logger=False, enable_model_summary=False,
         enable_progress_bar=False,
@@ -186,9 +209,14 @@ def pretrain(config: ExperimentConfig) -> Path:
     trainer = _trainer(config, run_dir, config.pretrain_epochs, [checkpoints])
     last = run_dir / "checkpoints" / "last.ckpt"
     trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
-    tmp = ckpt.with_suffix(".tmp")
-    trainer.save_checkpoint(tmp, weights_only=True)
-    os.replace(tmp, ckpt)
+    # `pretrained.ckpt` marks the pretraining done, so it must appear whole or not at all. Lightning writes
+    # to a path (every rank joins, rank 0 writes), so the checkpoint goes to a scratch file first.
+    scratch = run_dir / "pretrained.partial.ckpt"
+    trainer.save_checkpoint(scratch, weights_only=True)
+    if trainer.is_global_zero:
+        atomic_write(ckpt, scratch.read_bytes())
+        scratch.unlink()
+    trainer.strategy.barrier("pretrained.ckpt")
     return ckpt
 
 
@@ -202,35 +230,23 @@ def make_strategy(
     """The callback for a view strategy name (``"none"`` -> ``None``).
 
     Args:
-        name: ``"none"``, ``"error_guided"``, ``"random"``, ``"nature"``, ``"viat"`` or ``"mvtn"``.
+        name: one of :data:`STRATEGIES`: ``"none"`` or a selector name of
+            :data:`lightning_vtr.selection.SELECTORS` (``"nature"``, ``"random"``, ``"viat"``, ``"mvtn"``,
+            ``"error_guided"``).
         config: supplies ``fraction`` and ``seed`` of the callback.
         synthesizer: the callback's synthesizer (``None``: mesh rendering).
         selector_kwargs: arguments of the selector class (e.g. ``{"k": 15}`` for error-guided).
         callback_kwargs: further arguments of
             :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` (e.g. ``{"use_pool": False}``).
+
+    Raises:
+        ValueError: ``name`` is not in :data:`STRATEGIES`.
     """
-    from lightning_vtr.callback import ErrorGuidedViewAugmentation
-    from lightning_vtr.selection import ErrorGuidedSelector, NatureSelector, RandomSelector
-
-    kwargs = dict(selector_kwargs or {})
-    selectors: dict[str, Callable[[], Any]] = {
-        "error_guided": lambda: ErrorGuidedSelector(**kwargs),
-        "random": lambda: RandomSelector(**kwargs),
-        "nature": lambda: NatureSelector(**kwargs),
-    }
-    try:
-        from lightning_vtr.selection import MVTNSelector, VIATSelector
-
-        selectors["viat"] = lambda: VIATSelector(**kwargs)
-        selectors["mvtn"] = lambda: MVTNSelector(**kwargs)
-    except ImportError:  # pragma: no cover - optional strategies
-        pass
-    if name == "none":
+    if check_choice("name", name, STRATEGIES) == "none":
         return None
-    if name not in selectors:
-        raise ValueError(f"Unknown view strategy {name!r}; choose from {['none', *sorted(selectors)]}")
+    selector = make_selector(name, **(selector_kwargs or {}))
     options = {"fraction": config.fraction, "seed": config.seed, **(callback_kwargs or {})}
-    return ErrorGuidedViewAugmentation(selector=selectors[name](), synthesizer=synthesizer, **options)
+    return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
 
 
 #: ExperimentConfig fields that say where and on what a run happens, not what it measures.
@@ -296,8 +312,5 @@ def run_strategy(
         "generated_samples": len(dm.generated_samples),
         "results": results,
     }
-    run_dir.mkdir(parents=True, exist_ok=True)
-    tmp = result_file.with_suffix(".tmp")
-    tmp.write_text(json.dumps(payload, indent=1))
-    os.replace(tmp, result_file)
+    atomic_write(result_file, json.dumps(payload, indent=1))
     return payload

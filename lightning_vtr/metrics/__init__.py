@@ -4,6 +4,8 @@ Classes are torchmetrics ``Metric``s that sync across processes; the math lives 
 :mod:`lightning_vtr.metrics.functional`.
 """
 
+from __future__ import annotations
+
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, voxel_fscore, voxel_iou
 from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU
 

@@ -6,7 +6,7 @@ that accumulate per-object scores and sync across processes (DESIGN section 7).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -14,7 +14,9 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 from torch import Tensor
 
-__all__ = ["DEFAULT_IOU_THRESHOLDS", "surface_points", "voxel_fscore", "voxel_iou"]
+from lightning_vtr.utils.validation import check_float, check_int
+
+__all__ = ["DEFAULT_IOU_THRESHOLDS", "check_thresholds", "surface_points", "voxel_fscore", "voxel_iou"]
 
 #: The thresholds of Pix2Vox++'s test protocol; the paper's tables use 0.4.
 DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5)
@@ -32,14 +34,30 @@ def _check_pair(preds: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
             f"`preds` and `target` must have the same shape, got {tuple(preds.shape)} and {tuple(target.shape)}"
         )
     if preds.is_floating_point() and not torch.isfinite(preds).all():
-        raise ValueError("`preds` contains NaN or infinite values")
+        raise ValueError("`preds` must hold finite probabilities, got NaN or infinite values")
     return preds, target
 
 
-def _check_thresholds(thresholds: Sequence[float]) -> tuple[float, ...]:
-    values = tuple(float(t) for t in thresholds)
-    if not values or any(not 0.0 <= t <= 1.0 for t in values):
-        raise ValueError(f"`thresholds` must be a non-empty sequence of values in [0, 1], got {thresholds}")
+def check_thresholds(thresholds: Sequence[float], name: str = "thresholds") -> tuple[float, ...]:
+    """Binarisation thresholds as a tuple of floats, each in ``[0, 1]`` (the IoU metrics' ``thresholds``).
+
+    Args:
+        thresholds: a non-empty sequence of numbers (a 1-d tensor or array works too).
+        name: the argument's name in error messages.
+
+    Raises:
+        TypeError: ``thresholds`` is not a sequence (a lone number or a string) or holds a non-number.
+        ValueError: it is empty or a value lies outside ``[0, 1]``.
+    """
+    if isinstance(thresholds, (Tensor, np.ndarray)):
+        thresholds = thresholds.tolist()
+    if isinstance(thresholds, (str, bytes)) or not isinstance(thresholds, Iterable):
+        raise TypeError(
+            f"`{name}` must be a sequence of numbers in [0, 1], got {type(thresholds).__name__} {thresholds!r}"
+        )
+    values = tuple(check_float(f"{name}[{i}]", t, minimum=0.0, maximum=1.0) for i, t in enumerate(thresholds))
+    if not values:
+        raise ValueError(f"`{name}` must be a non-empty sequence of numbers in [0, 1], got {thresholds!r}")
     return values
 
 
@@ -61,6 +79,11 @@ def voxel_iou(
     Returns:
         ``(B, T)`` IoU of each object at each threshold, float32.
 
+    Raises:
+        TypeError: ``preds`` or ``target`` is not a tensor, or ``thresholds`` is not a sequence of numbers.
+        ValueError: the shapes differ or are not ``(B, R, R, R)``, ``preds`` is not finite, or a threshold
+            lies outside ``[0, 1]``.
+
     Example:
         >>> g = torch.zeros(1, 2, 2, 2); g[0, 0] = 1
         >>> p = torch.zeros(1, 2, 2, 2); p[0, 0, 0] = 0.9; p[0, 1, 0] = 0.3
@@ -68,7 +91,7 @@ def voxel_iou(
         tensor([[0.3333, 0.5000]])
     """
     preds, target = _check_pair(preds, target)
-    ts = _check_thresholds(thresholds)
+    ts = check_thresholds(thresholds)
     gt = (target >= 0.5).flatten(1)  # (B, N)
     p = preds.flatten(1).float()
     binary = p.unsqueeze(1) >= torch.tensor(ts, device=p.device).view(1, -1, 1)  # (B, T, N)
@@ -146,12 +169,16 @@ def voxel_fscore(
 
     Returns:
         ``(B,)`` float32 F-scores in ``[0, 1]``.
+
+    Raises:
+        TypeError: a tensor argument is not a tensor, or a number argument is not a number.
+        ValueError: the shapes differ or are not ``(B, R, R, R)``, ``preds`` is not finite, ``threshold``
+            is outside ``[0, 1]``, ``num_points < 1`` or ``distance <= 0``.
     """
     preds, target = _check_pair(preds, target)
-    if num_points < 1:
-        raise ValueError(f"`num_points` must be >= 1, got {num_points}")
-    if distance <= 0:
-        raise ValueError(f"`distance` must be > 0, got {distance}")
+    threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+    num_points = check_int("num_points", num_points, minimum=1)
+    distance = check_float("distance", distance, minimum=0.0, min_open=True)
     rng = generator if generator is not None else np.random.default_rng(seed)
     pred_np = (preds.detach() >= threshold).cpu().numpy()
     gt_np = (target.detach() >= 0.5).cpu().numpy()

@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, _check_thresholds, voxel_fscore, voxel_iou
+from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, check_thresholds, voxel_fscore, voxel_iou
+from lightning_vtr.utils.validation import check_float, check_int
 
 __all__ = ["VoxelFScore", "VoxelIoU"]
 
@@ -52,7 +53,7 @@ class _PerObjectMean(Metric):
     def add_categories(self, categories: Sequence[str]) -> None:
         """Append unseen names to the category vocabulary (in order) and grow the states to match."""
         if isinstance(categories, str):
-            raise TypeError(f"`categories` must be a sequence of names, got the string {categories!r}")
+            raise TypeError(f"`categories` must be a sequence of names, got str {categories!r}")
         new = [c for c in dict.fromkeys(str(c) for c in categories) if c not in self.categories]
         if not new:
             return
@@ -124,6 +125,10 @@ class VoxelIoU(_PerObjectMean):
         categories: category vocabulary for per-category means (see :meth:`add_categories`).
         kwargs: passed to :class:`torchmetrics.Metric` (``dist_sync_fn``, ``process_group``, ...).
 
+    Raises:
+        TypeError: ``thresholds`` is not a sequence of numbers.
+        ValueError: ``thresholds`` is empty or holds a value outside ``[0, 1]``.
+
     Example:
         >>> metric = VoxelIoU(thresholds=(0.5,))
         >>> g = torch.zeros(2, 2, 2, 2); g[:, 0] = 1
@@ -141,7 +146,7 @@ class VoxelIoU(_PerObjectMean):
         categories: Sequence[str] | None = None,
         **kwargs: Any,
     ) -> None:
-        self.thresholds = _check_thresholds(thresholds)
+        self.thresholds = check_thresholds(thresholds)
         super().__init__(len(self.thresholds), categories, **kwargs)
 
     def update(self, preds: Tensor, target: Tensor, categories: Sequence[str] | None = None) -> None:
@@ -176,6 +181,10 @@ class VoxelFScore(_PerObjectMean):
         categories: category vocabulary for per-category means.
         kwargs: passed to :class:`torchmetrics.Metric`.
 
+    Raises:
+        TypeError: a number argument of the wrong type (e.g. a float ``num_points``).
+        ValueError: ``threshold`` outside ``[0, 1]``, ``num_points < 1`` or ``distance <= 0``.
+
     Example:
         >>> metric = VoxelFScore()
         >>> g = torch.zeros(1, 32, 32, 32); g[0, 14:18, 14:18, 14:18] = 1
@@ -194,10 +203,10 @@ class VoxelFScore(_PerObjectMean):
         categories: Sequence[str] | None = None,
         **kwargs: Any,
     ) -> None:
-        self.threshold = _check_thresholds((threshold,))[0]
-        self.num_points = int(num_points)
-        self.distance = float(distance)
-        self.seed = int(seed)
+        self.threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+        self.num_points = check_int("num_points", num_points, minimum=1)
+        self.distance = check_float("distance", distance, minimum=0.0, min_open=True)
+        self.seed = check_int("seed", seed)
         super().__init__(1, categories, **kwargs)
 
     def update(self, preds: Tensor, target: Tensor, categories: Sequence[str] | None = None) -> None:

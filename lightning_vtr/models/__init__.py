@@ -1,14 +1,28 @@
-"""Reconstruction models: the shared LightningModule base, Pix2Vox++, and backbones."""
+"""Reconstruction models: the shared LightningModule base, Pix2Vox++ and LRGT with their specs, and backbones.
 
-from lightning_vtr.models.base import VIEW_SETS, VoxelReconstructionModule
-from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus
+Every model satisfies :class:`~lightning_vtr.protocol.ReconstructionModel`. ``Pix2VoxSpec`` and ``LRGTSpec``
+are the frozen architecture descriptions the presets hold (``PIX2VOX_PRESETS``, ``LRGT_PRESETS``) and each
+model's ``spec`` attribute.
+"""
+
+from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
+from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
+from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
+from lightning_vtr.protocol import VIEW_SETS
 
 __all__ = [
+    "LRGT",
+    "LRGT_PRESETS",
     "PIX2VOX_PRESETS",
-    "Pix2VoxPlusPlus",
-    "ResNet50Stem",
     "VIEW_SETS",
+    "DistilledVisionTransformer",
+    "LRGTSpec",
+    "Pix2VoxPlusPlus",
+    "Pix2VoxSpec",
+    "ResNet50Stem",
     "VoxelReconstructionModule",
+    "load_timm_deit",
     "load_torchvision_resnet50",
 ]

@@ -44,11 +44,10 @@ from torch import Tensor, nn
 
 from lightning_vtr.metrics import VoxelFScore, VoxelIoU
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
-
-#: The test view sets of ShapeNet-VTR, in the order of the paper's tables.
-VIEW_SETS: tuple[str, ...] = ("aligned", "hemispherical", "spherical")
 
 
 def _threshold_key(threshold: float) -> str:
@@ -71,7 +70,8 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             (fine on one process; under DDP give it explicitly).
 
     Raises:
-        ValueError: if a size is not a positive integer.
+        TypeError: if a size is not an int.
+        ValueError: if a size is not positive.
     """
 
     def __init__(
@@ -87,12 +87,9 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         categories: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
-        for name, value in (("image_size", image_size), ("num_views", num_views), ("voxel_resolution", voxel_resolution)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"`{name}` must be a positive integer, got {value!r}")
-        self.image_size = image_size
-        self.num_views = num_views
-        self.voxel_resolution = voxel_resolution
+        self.image_size = check_int("image_size", image_size, minimum=1)
+        self.num_views = check_int("num_views", num_views, minimum=1)
+        self.voxel_resolution = check_int("voxel_resolution", voxel_resolution, minimum=1)
         self.iou_thresholds = tuple(float(t) for t in iou_thresholds)
         self.validation_fscore = validation_fscore
         cats = list(categories) if categories is not None else None
@@ -123,9 +120,9 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
     # ------------------------------------------------------------------ protocol and checks
     def check_images(self, images: Tensor) -> None:
-        """Raise ``ValueError`` naming expected vs actual if ``images`` is not valid model input."""
-        if not isinstance(images, Tensor):
-            raise TypeError(f"`images` must be a torch.Tensor of shape (B, V, 3, H, W), got {type(images).__name__}")
+        """Raise ``ValueError`` naming expected vs actual if ``images`` is not valid model input (``TypeError``
+        if it is not a tensor)."""
+        check_type("images", images, Tensor, "torch.Tensor of shape (B, V, 3, H, W)")
         s = self.image_size
         if images.ndim != 5:
             raise ValueError(
@@ -137,11 +134,11 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         if (h, w) != (s, s):
             raise ValueError(f"`images` must be {s}x{s} pixels (H, W), got {h}x{w} (shape {tuple(images.shape)})")
         if b < 1 or v < 1:
-            raise ValueError(f"`images` needs at least one sample and one view, got shape {tuple(images.shape)}")
+            raise ValueError(f"`images` must have at least one sample and one view, got shape {tuple(images.shape)}")
         if not images.is_floating_point():
             raise ValueError(f"`images` must be a floating-point tensor, got {images.dtype}")
         if not torch.isfinite(images).all():
-            raise ValueError("`images` contains NaN or infinite values; expected finite normalised pixels")
+            raise ValueError("`images` must be finite normalised pixels, got NaN or infinite values")
 
     def check_voxels(self, voxels: Tensor, batch_size: int | None = None) -> None:
         """Raise ``ValueError`` if ``voxels`` is not a ``(B, R, R, R)`` target for this model."""
@@ -206,11 +203,12 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         probs = self(images)["voxels"].detach()
         view_sets = batch.get("view_set") or ["aligned"] * images.shape[0]
         if isinstance(view_sets, str) or len(view_sets) != images.shape[0]:
-            raise ValueError(f"batch['view_set'] must list one view-set name per sample ({images.shape[0]}), got {view_sets!r}")
+            raise ValueError(
+                f"`batch['view_set']` must list one view-set name per sample ({images.shape[0]}), got {view_sets!r}"
+            )
         categories = batch.get("category")
         for name in dict.fromkeys(view_sets):
-            if name not in self.test_metrics:
-                raise ValueError(f"batch['view_set'] holds {name!r}; expected one of {VIEW_SETS}")
+            check_choice("batch['view_set']", name, VIEW_SETS)
             index = [i for i, s in enumerate(view_sets) if s == name]
             sel = torch.tensor(index, device=probs.device)
             cats = [categories[i] for i in index] if categories is not None else None

@@ -15,8 +15,10 @@ probabilities. Training minimises the Dice loss of the paper.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -24,21 +26,103 @@ from torch import Tensor, nn
 
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.vit import Attention, DistilledVisionTransformer, Mlp, load_timm_deit
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "LRGT",
     "LRGT_PRESETS",
     "LRGTNetwork",
+    "LRGTSpec",
     "LongRangeGroupingAttention",
     "QueryVoxelDecoder",
     "SimilarTokenMerger",
     "dice_loss",
 ]
 
-# Architecture presets. ``grouping_blocks`` are 0-based indices into the encoder's blocks.
-LRGT_PRESETS: dict[str, dict] = {
-    # The published model: DeiT-B (distilled), 224 input, 14x14 tokens, about 130 M parameters.
-    "paper": dict(
+def _int_tuple(name: str, values: Sequence[int], minimum: int) -> tuple[int, ...]:
+    """``values`` as a tuple of ints ``>= minimum``; the messages name ``name[i]``."""
+    try:
+        items = tuple(values)
+    except TypeError:
+        raise TypeError(f"`{name}` must be a sequence of ints, got {type(values).__name__} {values!r}") from None
+    return tuple(check_int(f"{name}[{i}]", v, minimum=minimum) for i, v in enumerate(items))
+
+
+@dataclass(frozen=True)
+class LRGTSpec:
+    """The architecture of one LRGT variant: what :data:`LRGT_PRESETS` holds and :class:`LRGT` is built from.
+
+    Creating one checks every field (``TypeError`` for a wrong type, ``ValueError`` for a wrong value) and
+    stores the sequences as tuples, so a spec is hashable and compares by value.
+
+    Attributes:
+        image_size: square input size in pixels (a multiple of ``patch_size``).
+        patch_size: ViT patch side in pixels.
+        embed_dim: token width ``D`` (divisible by ``num_heads`` and ``decoder_heads``).
+        depth: encoder blocks.
+        num_heads: encoder attention heads.
+        grouping_blocks: 0-based indices of the encoder blocks that use long-range grouping attention.
+        group_stride: the grouping's residue stride; it divides the token grid side ``image_size / patch_size``.
+        num_merged_tokens: tokens ``M`` the similar-token merger keeps.
+        merger_k: neighbours of the merger's density estimate.
+        decoder_depth: layers of the query decoder.
+        decoder_heads: attention heads of the decoder layers.
+        query_grid: ``q``: the decoder's ``q^3`` learned queries.
+        upsample_channels: widths of the 2x upsampling stages; ``R = q 2^len(upsample_channels)``.
+    """
+
+    image_size: int
+    patch_size: int
+    embed_dim: int
+    depth: int
+    num_heads: int
+    grouping_blocks: tuple[int, ...]
+    group_stride: int
+    num_merged_tokens: int
+    merger_k: int
+    decoder_depth: int
+    decoder_heads: int
+    query_grid: int
+    upsample_channels: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        for name in ("depth", "decoder_depth"):
+            check_int(name, getattr(self, name), minimum=0)
+        for name in (
+            "image_size",
+            "patch_size",
+            "embed_dim",
+            "num_heads",
+            "group_stride",
+            "num_merged_tokens",
+            "merger_k",
+            "decoder_heads",
+            "query_grid",
+        ):
+            check_int(name, getattr(self, name), minimum=1)
+        blocks = _int_tuple("grouping_blocks", self.grouping_blocks, minimum=0)
+        if any(i >= self.depth for i in blocks):
+            raise ValueError(f"`grouping_blocks` must be 0-based block indices in [0, {self.depth}), got {list(blocks)}")
+        # Frozen: normalise the sequences (lists from a config or a checkpoint) through object.__setattr__.
+        object.__setattr__(self, "grouping_blocks", blocks)
+        object.__setattr__(self, "upsample_channels", _int_tuple("upsample_channels", self.upsample_channels, minimum=1))
+
+    @property
+    def grid_size(self) -> int:
+        """Side of each view's patch-token grid (14 for the paper)."""
+        return self.image_size // self.patch_size
+
+    @property
+    def voxel_resolution(self) -> int:
+        """``R`` of the ``(B, R, R, R)`` output: ``query_grid * 2 ** len(upsample_channels)``."""
+        return self.query_grid * 2 ** len(self.upsample_channels)
+
+
+#: The named presets. ``paper``: the published model (DeiT-B distilled, 224 px, 14x14 tokens, about 130 M
+#: parameters). ``tiny``: small enough to train on 2 CPU cores (64 px); 8x8 tokens with stride 4 keep groups
+#: of 4 tokens per view.
+LRGT_PRESETS: dict[str, LRGTSpec] = {
+    "paper": LRGTSpec(
         image_size=224,
         patch_size=16,
         embed_dim=768,
@@ -53,8 +137,7 @@ LRGT_PRESETS: dict[str, dict] = {
         query_grid=4,
         upsample_channels=(256, 64, 16),
     ),
-    # Small enough to train on 2 CPU cores; 8x8 tokens with stride 4 keep groups of 4 tokens per view.
-    "tiny": dict(
+    "tiny": LRGTSpec(
         image_size=64,
         patch_size=8,
         embed_dim=64,
@@ -86,7 +169,9 @@ def dice_loss(probs: Tensor, target: Tensor, smooth: float = 1.0) -> Tensor:
         not 0; only the gradient matters for training.
     """
     if probs.shape != target.shape:
-        raise ValueError(f"probs and target must have the same shape, got {tuple(probs.shape)} and {tuple(target.shape)}")
+        raise ValueError(
+            f"`target` must have the same shape as `probs` {tuple(probs.shape)}, got {tuple(target.shape)}"
+        )
     p = probs.flatten(1)
     t = target.flatten(1).to(p.dtype)
     inter = (p * t).sum(1)
@@ -120,8 +205,9 @@ class LongRangeGroupingAttention(Attention):
 
     def __init__(self, dim: int, num_heads: int, grid_size: int, group_stride: int, qkv_bias: bool = True) -> None:
         super().__init__(dim, num_heads, qkv_bias)
-        if group_stride < 1 or grid_size % group_stride != 0:
-            raise ValueError(f"group_stride ({group_stride}) must be a positive divisor of the token grid size ({grid_size})")
+        check_int("group_stride", group_stride, minimum=1)
+        if grid_size % group_stride != 0:
+            raise ValueError(f"`group_stride` must divide the token grid size {grid_size}, got {group_stride}")
         self.grid_size = grid_size
         self.group_stride = group_stride
         self.signature = nn.Conv2d(dim, dim, kernel_size=3, padding=1, groups=dim)
@@ -150,7 +236,7 @@ class LongRangeGroupingAttention(Attention):
         npre = t - self.grid_size**2
         if npre < 0 or bv % num_views != 0:
             raise ValueError(
-                f"expected (B * {num_views}, prefix + {self.grid_size ** 2}, D) tokens, got {tuple(x.shape)}"
+                f"`x` must be (B * {num_views}, prefix + {self.grid_size ** 2}, D) tokens, got {tuple(x.shape)}"
             )
         q, k, v = self.split_heads(x)
         # 1. patch tokens: attention inside each residue group, across views.
@@ -197,10 +283,8 @@ class SimilarTokenMerger(nn.Module):
 
     def __init__(self, dim: int, num_tokens: int, k: int) -> None:
         super().__init__()
-        if num_tokens < 1 or k < 1:
-            raise ValueError(f"num_tokens ({num_tokens}) and k ({k}) must be positive")
-        self.num_tokens = num_tokens
-        self.k = k
+        self.num_tokens = check_int("num_tokens", num_tokens, minimum=1)
+        self.k = check_int("k", k, minimum=1)
         self.score = nn.Linear(dim, 1)
 
     @torch.no_grad()
@@ -342,7 +426,11 @@ class LRGTNetwork(nn.Module):
     (grouping attention, the merger and the decoder are all permutation-invariant over views,
     up to ties in the clustering).
 
-    Args: see :data:`LRGT_PRESETS` for the meaning and the published values.
+    Args: the fields of :class:`LRGTSpec` (checked by it); :meth:`from_spec` builds the network of a spec,
+    e.g. of a preset in :data:`LRGT_PRESETS`.
+
+    Attributes:
+        spec: the :class:`LRGTSpec` of the network.
     """
 
     def __init__(
@@ -362,21 +450,43 @@ class LRGTNetwork(nn.Module):
         upsample_channels: Sequence[int],
     ) -> None:
         super().__init__()
-        self.encoder = DistilledVisionTransformer(image_size, patch_size, embed_dim, depth, num_heads)
-        bad = [i for i in grouping_blocks if not 0 <= i < depth]
-        if bad:
-            raise ValueError(f"grouping_blocks must be 0-based block indices in [0, {depth}), got {list(grouping_blocks)}")
-        self.grouping_blocks = tuple(grouping_blocks)
+        spec = LRGTSpec(
+            image_size=image_size,
+            patch_size=patch_size,
+            embed_dim=embed_dim,
+            depth=depth,
+            num_heads=num_heads,
+            grouping_blocks=grouping_blocks,
+            group_stride=group_stride,
+            num_merged_tokens=num_merged_tokens,
+            merger_k=merger_k,
+            decoder_depth=decoder_depth,
+            decoder_heads=decoder_heads,
+            query_grid=query_grid,
+            upsample_channels=upsample_channels,
+        )
+        self.spec = spec
+        self.encoder = DistilledVisionTransformer(spec.image_size, spec.patch_size, spec.embed_dim, spec.depth, spec.num_heads)
+        self.grouping_blocks = spec.grouping_blocks
         for i in self.grouping_blocks:
             old = self.encoder.blocks[i].attn
-            new = LongRangeGroupingAttention(embed_dim, num_heads, self.encoder.grid_size, group_stride)
+            new = LongRangeGroupingAttention(spec.embed_dim, spec.num_heads, self.encoder.grid_size, spec.group_stride)
             # Keep the block's (possibly pretrained) qkv/proj; only the signature conv is new.
             new.qkv, new.proj = old.qkv, old.proj
             self.encoder.blocks[i].attn = new
-        self.merger = SimilarTokenMerger(embed_dim, num_merged_tokens, merger_k)
-        self.decoder = QueryVoxelDecoder(embed_dim, decoder_heads, decoder_depth, query_grid, upsample_channels)
-        self.image_size = image_size
+        self.merger = SimilarTokenMerger(spec.embed_dim, spec.num_merged_tokens, spec.merger_k)
+        self.decoder = QueryVoxelDecoder(
+            spec.embed_dim, spec.decoder_heads, spec.decoder_depth, spec.query_grid, spec.upsample_channels
+        )
+        self.image_size = spec.image_size
         self.voxel_resolution = self.decoder.resolution
+
+    @classmethod
+    def from_spec(cls, spec: LRGTSpec) -> LRGTNetwork:
+        """The network of ``spec`` (e.g. ``LRGTNetwork.from_spec(LRGT_PRESETS["tiny"])``)."""
+        if not isinstance(spec, LRGTSpec):
+            raise TypeError(f"`spec` must be an LRGTSpec, got {type(spec).__name__} {spec!r}")
+        return cls(**dataclasses.asdict(spec))
 
     def load_pretrained_encoder(self, path_or_state_dict) -> None:
         """Load a timm-format DeiT (distilled) checkpoint into the encoder (see :func:`load_timm_deit`)."""
@@ -384,7 +494,7 @@ class LRGTNetwork(nn.Module):
 
     def forward(self, images: Tensor) -> Tensor:
         if images.ndim != 5 or images.shape[2] != 3:
-            raise ValueError(f"images must be (B, V, 3, H, W), got {tuple(images.shape)}")
+            raise ValueError(f"`images` must be (B, V, 3, H, W), got {tuple(images.shape)}")
         b, v = images.shape[:2]
         tokens = self.encoder(images.flatten(0, 1), num_views=v)
         patches = tokens[:, self.encoder.num_prefix_tokens :]  # cls/dist are not used downstream
@@ -397,7 +507,8 @@ class LRGT(VoxelReconstructionModule):
 
     ``preset`` picks an architecture from :data:`LRGT_PRESETS` (``"paper"``: DeiT-B encoder,
     224 px input, about 130 M parameters; ``"tiny"``: 64 px input, 0.5 M parameters, trains on
-    a CPU); any architecture argument left at ``None`` takes the preset's value. Training
+    a CPU); any architecture argument left at ``None`` takes the preset's value. The resolved
+    architecture is :attr:`spec`, an :class:`LRGTSpec`. Training
     minimises :func:`dice_loss` with AdamW and a MultiStepLR schedule (milestones in epochs),
     as published. Any number of views works at train and test time.
 
@@ -417,6 +528,9 @@ class LRGT(VoxelReconstructionModule):
         gamma: the decay factor.
         validation_fscore, categories: passed to
             :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+
+    Attributes:
+        spec: the resolved architecture (the preset with the overrides applied).
 
     Example::
 
@@ -449,9 +563,7 @@ class LRGT(VoxelReconstructionModule):
         validation_fscore: bool = True,
         categories: list[str] | None = None,
     ) -> None:
-        if preset not in LRGT_PRESETS:
-            raise ValueError(f"`preset` must be one of {sorted(LRGT_PRESETS)}, got {preset!r}")
-        config = dict(LRGT_PRESETS[preset])
+        check_choice("preset", preset, LRGT_PRESETS)
         overrides = dict(
             image_size=image_size,
             patch_size=patch_size,
@@ -467,26 +579,26 @@ class LRGT(VoxelReconstructionModule):
             query_grid=query_grid,
             upsample_channels=upsample_channels,
         )
-        config.update({k: v for k, v in overrides.items() if v is not None})
-        network = LRGTNetwork(**config)
+        spec = dataclasses.replace(LRGT_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None})
+        network = LRGTNetwork.from_spec(spec)
         super().__init__(
-            image_size=config["image_size"],
+            image_size=spec.image_size,
             num_views=num_views,
-            voxel_resolution=network.voxel_resolution,
+            voxel_resolution=spec.voxel_resolution,
             validation_fscore=validation_fscore,
             categories=categories,
         )
-        if lr <= 0:
-            raise ValueError(f"`lr` must be positive, got {lr}")
+        check_float("lr", lr, minimum=0.0, min_open=True)
         # save_hyperparameters() reads the arguments' current values, so resolve them first: the
         # checkpoint then describes the architecture fully, and the DataModule's `image_size`
         # hparam agrees with ours when Lightning merges the two for logging.
         (image_size, patch_size, embed_dim, depth, num_heads, group_stride, num_merged_tokens, merger_k,
-         decoder_depth, decoder_heads, query_grid) = (config[k] for k in (
+         decoder_depth, decoder_heads, query_grid) = (getattr(spec, k) for k in (
             "image_size", "patch_size", "embed_dim", "depth", "num_heads", "group_stride", "num_merged_tokens",
             "merger_k", "decoder_depth", "decoder_heads", "query_grid"))
-        grouping_blocks, upsample_channels = list(config["grouping_blocks"]), list(config["upsample_channels"])
+        grouping_blocks, upsample_channels = list(spec.grouping_blocks), list(spec.upsample_channels)
         self.save_hyperparameters()
+        self.spec = spec
         self.network = network
         if pretrained_encoder is not None:
             self.network.load_pretrained_encoder(pretrained_encoder)

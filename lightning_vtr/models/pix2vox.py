@@ -7,9 +7,8 @@ narrow layers so it trains on a laptop CPU (64 px input).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -19,6 +18,7 @@ from torch import Tensor, nn
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
+from lightning_vtr.utils.validation import check_choice
 
 __all__ = ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec"]
 
@@ -252,8 +252,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         validation_fscore: bool = True,
         categories: tuple[str, ...] | None = None,
     ) -> None:
-        if preset not in PIX2VOX_PRESETS:
-            raise ValueError(f"`preset` must be one of {sorted(PIX2VOX_PRESETS)}, got {preset!r}")
+        check_choice("preset", preset, PIX2VOX_PRESETS)
         spec = PIX2VOX_PRESETS[preset]
         super().__init__(
             image_size=spec.image_size,
@@ -277,7 +276,10 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         self.refiner = _Refiner(spec.refiner_channels, spec.refiner_hidden)
         if backbone_weights is not None:
             if spec.backbone != "resnet50":
-                raise ValueError(f"`backbone_weights` needs the ResNet-50 backbone of preset 'paper', got preset {preset!r}")
+                raise ValueError(
+                    f"`backbone_weights` must be None for preset {preset!r}, which has no ResNet-50 backbone "
+                    f"(preset 'paper' has one), got {backbone_weights!r}"
+                )
             load_torchvision_resnet50(self.encoder.backbone, backbone_weights)
         freeze = backbone_weights is not None if freeze_backbone is None else freeze_backbone
         self.encoder.backbone.requires_grad_(not freeze)

@@ -14,6 +14,8 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
+from lightning_vtr.utils.validation import check_type
+
 __all__ = ["Bottleneck", "ResNet50Stem", "load_torchvision_resnet50"]
 
 #: Prefixes of a full torchvision ResNet-50 state dict that the truncated network does not have.
@@ -96,9 +98,11 @@ def load_torchvision_resnet50(module: ResNet50Stem, source: str | os.PathLike | 
             (optionally wrapped as ``{"state_dict": ...}``), or the state dict itself.
 
     Raises:
+        TypeError: if ``source`` is neither a path nor a mapping.
         FileNotFoundError: if ``source`` is a path that does not exist.
         ValueError: naming the missing / unexpected keys or mismatched shapes.
     """
+    check_type("source", source, (str, os.PathLike, Mapping), "path or a state dict (a mapping of tensors)")
     name = "state dict"
     if isinstance(source, (str, os.PathLike)):
         name = os.fspath(source)

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from lightning_vtr.utils.validation import check_int
+
 __all__ = ["Attention", "Block", "DistilledVisionTransformer", "Mlp", "PatchEmbed", "load_timm_deit"]
 
 # timm keys that belong to the classifier, which we never build.
@@ -33,8 +35,10 @@ class PatchEmbed(nn.Module):
 
     def __init__(self, image_size: int, patch_size: int, in_chans: int, embed_dim: int) -> None:
         super().__init__()
+        check_int("image_size", image_size, minimum=1)
+        check_int("patch_size", patch_size, minimum=1)
         if image_size % patch_size != 0:
-            raise ValueError(f"image_size ({image_size}) must be a multiple of patch_size ({patch_size})")
+            raise ValueError(f"`image_size` must be a multiple of `patch_size` {patch_size}, got {image_size}")
         self.image_size = image_size
         self.patch_size = patch_size
         self.grid_size = image_size // patch_size
@@ -43,7 +47,7 @@ class PatchEmbed(nn.Module):
     def forward(self, images: Tensor) -> Tensor:
         if images.shape[-2:] != (self.image_size, self.image_size):
             raise ValueError(
-                f"images must be {self.image_size}x{self.image_size}, got {tuple(images.shape[-2:])}"
+                f"`images` must be {self.image_size}x{self.image_size}, got {tuple(images.shape[-2:])}"
             )
         return self.proj(images).flatten(2).transpose(1, 2)
 
@@ -53,8 +57,10 @@ class Attention(nn.Module):
 
     def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True) -> None:
         super().__init__()
+        check_int("dim", dim, minimum=1)
+        check_int("num_heads", num_heads, minimum=1)
         if dim % num_heads != 0:
-            raise ValueError(f"dim ({dim}) must be divisible by num_heads ({num_heads})")
+            raise ValueError(f"`dim` must be divisible by `num_heads` {num_heads}, got {dim}")
         self.num_heads = num_heads
         self.head_dim = dim // num_heads
         self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
@@ -188,7 +194,7 @@ def resize_pos_embed(pos_embed: Tensor, grid_size: int, num_prefix_tokens: int =
     prefix, grid = pos_embed[:, :num_prefix_tokens], pos_embed[:, num_prefix_tokens:]
     old = math.isqrt(grid.shape[1])
     if old * old != grid.shape[1]:
-        raise ValueError(f"pos_embed has {grid.shape[1]} patch positions, which is not a square grid")
+        raise ValueError(f"`pos_embed` must hold a square grid of patch positions, got {grid.shape[1]}")
     if old == grid_size:
         return pos_embed
     d = grid.shape[-1]

@@ -2,22 +2,25 @@
 
 from __future__ import annotations
 
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
 from lightning_vtr.selection.differentiable_projection import soft_error_projection
 from lightning_vtr.selection.error_guided import ErrorGuidedSelector
+from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.nature import NatureSelector
 from lightning_vtr.selection.plots import plot_error_projections, plot_pool_distribution
 from lightning_vtr.selection.pool import ViewpointPool
 from lightning_vtr.selection.projection import (
+    check_volume_pair,
+    check_volumes,
     error_projection,
     error_volume,
     nearest_bins,
+    projection_scores,
     sample_around_bins,
     select_views,
     top_bins,
     view_scores,
 )
-from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.random_selector import RandomSelector
 from lightning_vtr.selection.registry import SELECTORS, make_selector
 from lightning_vtr.selection.viat import VIATSelector
@@ -32,12 +35,16 @@ __all__ = [
     "VIATSelector",
     "ViewSelector",
     "ViewpointPool",
+    "check_categories",
+    "check_volume_pair",
+    "check_volumes",
     "error_projection",
     "error_volume",
     "make_selector",
     "nearest_bins",
     "plot_error_projections",
     "plot_pool_distribution",
+    "projection_scores",
     "sample_around_bins",
     "select_views",
     "soft_error_projection",

@@ -10,7 +10,25 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["SelectionContext", "ViewSelector"]
+__all__ = ["SelectionContext", "ViewSelector", "check_categories"]
+
+
+def check_categories(categories: list[str], batch: int) -> list[str]:
+    """Check that ``categories`` names one category per object of a batch of ``batch``; returns it.
+
+    Every selector's :meth:`ViewSelector.select` takes the names alongside ``(B, R, R, R)`` grids.
+
+    Raises:
+        TypeError: ``categories`` is a single string (a common slip) or has no length.
+        ValueError: its length is not ``batch``.
+    """
+    if isinstance(categories, str) or not hasattr(categories, "__len__"):
+        raise TypeError(
+            f"`categories` must be a sequence of names, one per object, got {type(categories).__name__} {categories!r}"
+        )
+    if len(categories) != batch:
+        raise ValueError(f"`categories` must have one entry per object, got {len(categories)} for a batch of {batch}")
+    return categories
 
 
 @dataclass

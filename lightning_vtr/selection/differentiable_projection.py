@@ -13,27 +13,23 @@ the rest of the package. As ``density`` grows, the soft map tends to the hard fi
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from lightning_vtr.geometry import camera_basis, check_viewpoints
+from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, camera_basis, check_viewpoints
+from lightning_vtr.utils.validation import check_float, check_int
 
+# DEFAULT_HALF_EXTENT is re-exported: half the side of the square each projection covers (world units), the
+# radius of the unit cube's circumsphere, so no rotation of the grid leaves the image.
 __all__ = ["DEFAULT_HALF_EXTENT", "soft_error_projection"]
-
-#: Half the side of the square each projection covers, in world units: ``sqrt(3) / 2`` is the
-#: radius of the unit cube's circumsphere, so no rotation of the grid leaves the image.
-DEFAULT_HALF_EXTENT = math.sqrt(3.0) / 2.0
 
 
 def _check_inputs(volumes: Tensor, viewpoints: Tensor) -> tuple[Tensor, Tensor]:
-    if not isinstance(volumes, Tensor) or volumes.ndim != 4 or not (
-        volumes.shape[1] == volumes.shape[2] == volumes.shape[3]
-    ):
-        shape = tuple(volumes.shape) if isinstance(volumes, Tensor) else type(volumes).__name__
-        raise ValueError(f"`volumes` must be a tensor of shape (B, R, R, R), got {shape}")
+    if not isinstance(volumes, Tensor):
+        raise TypeError(f"`volumes` must be a torch.Tensor of shape (B, R, R, R), got {type(volumes).__name__}")
+    if volumes.ndim != 4 or not (volumes.shape[1] == volumes.shape[2] == volumes.shape[3]):
+        raise ValueError(f"`volumes` must be a tensor of shape (B, R, R, R), got {tuple(volumes.shape)}")
     vp = check_viewpoints(viewpoints)
     if vp.ndim == 2:
         vp = vp.unsqueeze(0).expand(volumes.shape[0], -1, -1)
@@ -115,16 +111,15 @@ def soft_error_projection(
 
     Raises:
         ValueError: if ``volumes`` is not ``(B, R, R, R)``, ``viewpoints`` has the wrong shape,
-            or a size or ``density`` is not positive.
+            or a size, ``half_extent`` or ``density`` is not positive.
+        TypeError: if a size is not an int or ``half_extent`` / ``density`` is not a number.
     """
     volumes, vp = _check_inputs(volumes, viewpoints)
     resolution = volumes.shape[-1]
-    image_size = resolution if image_size is None else int(image_size)
-    num_samples = 2 * resolution if num_samples is None else int(num_samples)
-    if image_size <= 0 or num_samples <= 0:
-        raise ValueError(f"`image_size` and `num_samples` must be positive, got {image_size} and {num_samples}")
-    if half_extent <= 0 or density <= 0:
-        raise ValueError(f"`half_extent` and `density` must be positive, got {half_extent} and {density}")
+    image_size = resolution if image_size is None else check_int("image_size", image_size, minimum=1)
+    num_samples = 2 * resolution if num_samples is None else check_int("num_samples", num_samples, minimum=1)
+    check_float("half_extent", half_extent, minimum=0.0, min_open=True)
+    check_float("density", density, minimum=0.0, min_open=True)
     batch, num_views = vp.shape[:2]
 
     grid = _ray_grid(vp, image_size, half_extent, num_samples)

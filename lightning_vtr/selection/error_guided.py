@@ -2,23 +2,32 @@
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import candidate_viewpoints, check_bin_interval, sample_uniform_viewpoints
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.selection.diversity import choose_bins
 from lightning_vtr.selection.projection import (
-    _candidate_scores,
-    _check_pair,
+    check_volume_pair,
     error_volume,
+    projection_scores,
     sample_around_bins,
-    top_bins,
+    visible_error_scores,
 )
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
-__all__ = ["ErrorGuidedSelector"]
+__all__ = ["SCORES", "ErrorGuidedSelector"]
+
+#: The view scores, as ``(error mode, mask, reduction)`` of the error projection; ``"visible"`` projects the
+#: surface of prediction and truth together instead of the error alone (see :func:`visible_error_scores`).
+SCORES: dict[str, tuple[str, str | None, str]] = {
+    "paper": ("binary", None, "sum"),  # the paper: binary error, summed first-hit map
+    "released": ("soft", "gt", "mean"),  # the authors' released code: soft error inside GT, mean over hits
+    "visible": ("binary", None, "sum"),  # ours: the error on the surface a camera sees, summed
+}
 
 
 class ErrorGuidedSelector(ViewSelector):
@@ -35,19 +44,44 @@ class ErrorGuidedSelector(ViewSelector):
     (``uses_pool = True``). After :meth:`select`, ``last_scores (B, V_c)``, ``last_bins (B, num_views)``
     and ``last_fallback (B,)`` hold the intermediate results for logging and plots.
 
+    The view score (``score``):
+
+    * ``"paper"`` (the paper, and the default): binary error at ``threshold``, summed over the first-hit
+      map. Every hit is worth 1, so a view's score is the area of the error's silhouette, the same for a
+      view and its antipode.
+    * ``"released"`` (the authors' released code): soft error :math:`|V - V^{gt}|` inside ground-truth
+      voxels, mean over hit pixels (0 for an empty map). Side-aware: it averages the error on the visible
+      ground-truth surface.
+    * ``"visible"`` (ours): what a camera at that viewpoint would see wrong. The first hit along each ray on
+      the union of predicted and ground-truth occupancy, valued by the (binary) error there, summed
+      (:func:`~lightning_vtr.selection.projection.visible_error_scores`). Side-aware by construction.
+
+    Which bins are kept (``min_separation``, ``temperature``; see
+    :func:`~lightning_vtr.selection.diversity.choose_bins`): by default the hard top ``num_views``;
+    non-maximum suppression keeps chosen bins apart and never picks an antipode of a chosen bin; a
+    temperature samples bins with probability :math:`\propto` solid angle :math:`\times s^{1/\tau}`, from
+    the hard top-n (:math:`\tau \to 0`) to area-uniform random bins (:math:`\tau \to \infty`).
+
     Args:
         k: bin interval ``K`` in degrees; must divide 180 (30 gives 72 candidate views).
         num_views: ``n``, views selected per object (the number of input views, 3).
-        threshold: binarisation threshold of the prediction (``mode="binary"``).
-        mode: ``"binary"`` (paper) or ``"soft"`` error volume, see :func:`error_volume`.
-        mask: ``"gt"`` counts only errors inside ground-truth voxels; ``None`` counts all.
-        reduction: per-view score, ``"sum"`` (paper) or ``"mean"`` over hit pixels.
+        score: ``"paper"``, ``"released"`` or ``"visible"`` (see above).
+        threshold: binarisation threshold of the prediction.
+        min_separation: ``None`` for no suppression; else the angle in degrees within which a chosen bin
+            (or its antipode) forbids other bins. ``0`` forbids only the antipode.
+        temperature: ``None`` for the hard top ``n``; else :math:`\tau > 0` of the tempered sampling.
+        mode: override of the score's error volume, ``"binary"`` or ``"soft"`` (see :func:`error_volume`).
+        mask: override of the score's mask: ``"gt"`` counts only errors inside ground-truth voxels,
+            ``"none"`` every error.
+        reduction: override of the score's per-view reduction, ``"sum"`` or ``"mean"`` over hit pixels.
+            ``None`` (the default) for ``mode``, ``mask`` and ``reduction`` takes the value of ``score``.
         sigma: sampling standard deviation in degrees; ``None`` means ``K / 6``.
         fallback: uniform sampler for objects without error: ``"area"`` (uniform on the sphere) or
             ``"angle"`` (uniform yaw and pitch).
         eps: error values ``<= eps`` are transparent to the projection (matters for ``mode="soft"``).
 
     Raises:
+        TypeError: an argument of the wrong type (named in the message, with its value).
         ValueError: naming the argument and the bad value, e.g. ``K`` not dividing 180.
 
     Example::
@@ -63,40 +97,35 @@ class ErrorGuidedSelector(ViewSelector):
         self,
         k: int = 30,
         num_views: int = 3,
+        score: Literal["paper", "released", "visible"] = "paper",
         threshold: float = 0.4,
-        mode: Literal["binary", "soft"] = "binary",
-        mask: Literal[None, "gt"] = None,
-        reduction: Literal["sum", "mean"] = "sum",
+        min_separation: float | None = None,
+        temperature: float | None = None,
+        mode: Literal["binary", "soft"] | None = None,
+        mask: Literal["gt", "none"] | None = None,
+        reduction: Literal["sum", "mean"] | None = None,
         sigma: float | None = None,
         fallback: Literal["area", "angle"] = "area",
         eps: float = 0.0,
     ) -> None:
         self.k = check_bin_interval(k)
+        # at most one view per candidate bin: the views are drawn around distinct best bins
         n_candidates = (180 // self.k) * (360 // self.k)
-        if isinstance(num_views, bool) or not isinstance(num_views, int) or not 1 <= num_views <= n_candidates:
-            raise ValueError(f"`num_views` must be an int in [1, {n_candidates}] for K={self.k}, got {num_views!r}")
-        if not (isinstance(threshold, (int, float)) and 0.0 <= threshold <= 1.0):
-            raise ValueError(f"`threshold` must lie in [0, 1], got {threshold!r}")
-        if mode not in ("binary", "soft"):
-            raise ValueError(f"`mode` must be 'binary' or 'soft', got {mode!r}")
-        if mask not in (None, "gt"):
-            raise ValueError(f"`mask` must be None or 'gt', got {mask!r}")
-        if reduction not in ("sum", "mean"):
-            raise ValueError(f"`reduction` must be 'sum' or 'mean', got {reduction!r}")
-        if sigma is not None and not (isinstance(sigma, (int, float)) and sigma >= 0 and math.isfinite(sigma)):
-            raise ValueError(f"`sigma` must be None or a finite number >= 0 (degrees), got {sigma!r}")
-        if fallback not in ("area", "angle"):
-            raise ValueError(f"`fallback` must be 'area' or 'angle', got {fallback!r}")
-        if not (isinstance(eps, (int, float)) and 0.0 <= eps < 1.0):
-            raise ValueError(f"`eps` must lie in [0, 1), got {eps!r}")
-        self.num_views = num_views
-        self.threshold = float(threshold)
-        self.mode = mode
-        self.mask = mask
-        self.reduction = reduction
-        self.sigma = self.k / 6.0 if sigma is None else float(sigma)
-        self.fallback = fallback
-        self.eps = float(eps)
+        self.num_views = check_int("num_views", num_views, minimum=1, maximum=n_candidates)
+        self.score = check_choice("score", score, SCORES)
+        self.threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+        self.min_separation = (
+            None if min_separation is None else check_float("min_separation", min_separation, minimum=0.0, maximum=180.0)
+        )
+        self.temperature = None if temperature is None else check_float("temperature", temperature, minimum=0.0)
+        default_mode, default_mask, default_reduction = SCORES[score]
+        self.mode = check_choice("mode", default_mode if mode is None else mode, ("binary", "soft"))
+        mask = default_mask if mask is None else check_choice("mask", mask, ("gt", "none"))
+        self.mask = None if mask == "none" else mask
+        self.reduction = check_choice("reduction", default_reduction if reduction is None else reduction, ("sum", "mean"))
+        self.sigma = self.k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)
+        self.fallback = check_choice("fallback", fallback, ("area", "angle"))
+        self.eps = check_float("eps", eps, minimum=0.0, maximum=1.0, max_open=True)
         self.candidates = candidate_viewpoints(self.k)  # (V_c, 2) degrees, pitch-major
         self.last_scores: Tensor | None = None
         self.last_bins: Tensor | None = None
@@ -108,16 +137,21 @@ class ErrorGuidedSelector(ViewSelector):
 
     def score_views(self, predicted: Tensor, target: Tensor) -> Tensor:
         """Scores ``(B, V_c)`` of every candidate viewpoint (``candidate_viewpoints(k)`` order)."""
+        if self.score == "visible":
+            predicted, target = check_volume_pair(predicted, target)
+            return visible_error_scores(
+                predicted, target, self.candidates.to(predicted.device), threshold=self.threshold, mode=self.mode
+            )
         if self.mode == "binary":
             # the {0, 1} error as bool: skips a float conversion of the grids
-            predicted, target = _check_pair(predicted, target)
+            predicted, target = check_volume_pair(predicted, target)
             errors = (predicted >= self.threshold) != (target >= 0.5)
             if self.mask == "gt":
                 errors &= target >= 0.5
         else:
             errors = self.error_volume(predicted, target)
         # equal to view_scores(error_projection(errors, candidates, eps=eps)) without the (B, V, R, R) maps
-        return _candidate_scores(
+        return projection_scores(
             errors,
             self.candidates.to(errors.device),
             reduction=self.reduction,
@@ -137,18 +171,23 @@ class ErrorGuidedSelector(ViewSelector):
 
         An empty batch (``B = 0``, e.g. a DDP rank with no object this epoch) returns an empty
         ``(0, num_views, 2)`` tensor. ``categories`` is checked for length only; the selection itself is
-        per object. Random draws, all from ``generator``: the tie order and Gaussian samples of
-        :func:`select_views`, then the uniform fallback of the objects without error, in batch order.
+        per object. Random draws, all from ``generator``: the ``(B, V_c)`` uniforms of
+        :func:`~lightning_vtr.selection.diversity.choose_bins`, the Gaussian samples around the bins, then the
+        uniform fallback of the objects without error, in batch order.
         """
-        predicted, target = _check_pair(predicted, target)
-        if len(categories) != predicted.shape[0]:
-            raise ValueError(
-                f"`categories` must have one entry per object: got {len(categories)} for a batch of {predicted.shape[0]}"
-            )
+        predicted, target = check_volume_pair(predicted, target)
+        check_categories(categories, predicted.shape[0])
         # 1. score every candidate view by the error it sees
         scores = self.score_views(predicted, target)
-        # 2. keep the best bins (exact ties in random order) and sample around their centres
-        bins = top_bins(scores, self.num_views, generator=generator)
+        # 2. choose bins (the best, apart from each other, or tempered draws) and sample around their centres
+        bins = choose_bins(
+            scores,
+            self.num_views,
+            k=self.k,
+            min_separation=self.min_separation,
+            temperature=self.temperature,
+            generator=generator,
+        )
         views = sample_around_bins(bins, self.k, sigma=self.sigma, generator=generator).to(torch.get_default_dtype())
         # 3. objects without error: no preferred side, sample uniformly
         no_error = scores.sum(dim=1) <= 0
@@ -163,7 +202,8 @@ class ErrorGuidedSelector(ViewSelector):
 
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(k={self.k}, num_views={self.num_views}, threshold={self.threshold}, "
+            f"{type(self).__name__}(k={self.k}, num_views={self.num_views}, score={self.score!r}, "
+            f"threshold={self.threshold}, min_separation={self.min_separation}, temperature={self.temperature}, "
             f"mode={self.mode!r}, mask={self.mask!r}, reduction={self.reduction!r}, sigma={self.sigma}, "
             f"fallback={self.fallback!r})"
         )

@@ -16,9 +16,10 @@ import torch
 from torch import Tensor, nn
 
 from lightning_vtr.geometry import wrap_yaw
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
 from lightning_vtr.selection.differentiable_projection import soft_error_projection
-from lightning_vtr.selection.projection import error_volume
+from lightning_vtr.selection.projection import check_volume_pair, error_volume
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = ["MVTNSelector"]
 
@@ -82,7 +83,8 @@ class MVTNSelector(ViewSelector):
         seed: seed of the network's initialisation.
 
     Raises:
-        ValueError: for a bad count, bound, pitch, learning rate or ``input``.
+        TypeError: an argument of the wrong type (named in the message, with its value).
+        ValueError: for a bad count, bound, pitch, learning rate, threshold, density or ``input``.
 
     Example::
 
@@ -111,31 +113,33 @@ class MVTNSelector(ViewSelector):
         hidden: int = 64,
         seed: int = 0,
     ) -> None:
-        for name, value, low in (("num_views", num_views, 1), ("steps", steps, 0), ("width", width, 1), ("hidden", hidden, 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"`{name}` must be an int >= {low}, got {value!r}")
-        base_yaw = [i * 360.0 / num_views for i in range(num_views)] if base_yaw is None else list(base_yaw)
+        num_views = check_int("num_views", num_views, minimum=1)
+        steps = check_int("steps", steps, minimum=0)
+        width = check_int("width", width, minimum=1)
+        hidden = check_int("hidden", hidden, minimum=1)
+        if base_yaw is None:
+            base_yaw = [i * 360.0 / num_views for i in range(num_views)]
+        else:
+            values = base_yaw.tolist() if isinstance(base_yaw, Tensor) else base_yaw
+            base_yaw = [check_float(f"base_yaw[{i}]", yaw) for i, yaw in enumerate(values)]
         if len(base_yaw) != num_views:
             raise ValueError(f"`base_yaw` must hold num_views={num_views} angles (degrees), got {len(base_yaw)}")
-        if not -90.0 < base_pitch < 90.0:
-            raise ValueError(f"`base_pitch` must lie in (-90, 90) degrees, got {base_pitch!r}")
-        max_yaw_offset = 180.0 / num_views if max_yaw_offset is None else float(max_yaw_offset)
-        if not 0.0 <= max_yaw_offset <= 180.0:
-            raise ValueError(f"`max_yaw_offset` must lie in [0, 180] degrees, got {max_yaw_offset!r}")
-        if not (lr > 0 and math.isfinite(lr)):
-            raise ValueError(f"`lr` must be a positive finite number, got {lr!r}")
-        if input not in ("error", "predicted"):
-            raise ValueError(f"`input` must be 'error' or 'predicted', got {input!r}")
+        # open interval: the pitch is reparameterised through atanh(base_pitch / 90)
+        base_pitch = check_float("base_pitch", base_pitch, minimum=-90.0, maximum=90.0, min_open=True, max_open=True)
+        if max_yaw_offset is None:
+            max_yaw_offset = 180.0 / num_views
+        max_yaw_offset = check_float("max_yaw_offset", max_yaw_offset, minimum=0.0, maximum=180.0)
         self.num_views = num_views
         self.base_yaw = torch.tensor(base_yaw, dtype=torch.float32)
-        self.base_pitch = float(base_pitch)
+        self.base_pitch = base_pitch
         self.max_yaw_offset = max_yaw_offset
         self.steps = steps
-        self.lr = lr
-        self.input = input
-        self.threshold = threshold
-        self.density = density
-        self.image_size = image_size
+        self.lr = check_float("lr", lr, minimum=0.0, min_open=True)
+        self.input = check_choice("input", input, ("error", "predicted"))
+        self.threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+        self.density = check_float("density", density, minimum=0.0, min_open=True)
+        self.image_size = None if image_size is None else check_int("image_size", image_size, minimum=1)
+        seed = check_int("seed", seed)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.network = _ViewRegressor(num_views, width, hidden)
@@ -160,8 +164,8 @@ class MVTNSelector(ViewSelector):
             context: unused.
         """
         # 1. check inputs and build the volumes the network reads and the projection scores
-        if len(categories) != predicted.shape[0]:
-            raise ValueError(f"`categories` must hold one name per object: expected {predicted.shape[0]}, got {len(categories)}")
+        predicted, target = check_volume_pair(predicted, target)
+        check_categories(categories, predicted.shape[0])
         # The callback may call us under no_grad / inference mode; training needs autograd and
         # ordinary (non-inference) tensors.
         with torch.inference_mode(False), torch.enable_grad():

@@ -8,17 +8,11 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import clamp_pitch, sample_uniform_viewpoints
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
-from lightning_vtr.selection.projection import _check_pair
-from lightning_vtr.selection.random_selector import _check_num_views, _check_range
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.selection.projection import check_volume_pair
+from lightning_vtr.utils.validation import check_float, check_int, check_range
 
 __all__ = ["NatureSelector"]
-
-
-def _check_pitch(value: float, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not -90.0 <= value <= 90.0:
-        raise ValueError(f"`{name}` must be a pitch in [-90, 90] degrees, got {value!r}")
-    return float(value)
 
 
 class NatureSelector(ViewSelector):
@@ -38,6 +32,7 @@ class NatureSelector(ViewSelector):
         yaw_range: ``(low, high)`` yaw in degrees, within [-180, 180].
 
     Raises:
+        TypeError: an argument of the wrong type (e.g. a pitch that is not a number).
         ValueError: naming the argument and the bad value.
 
     Example::
@@ -55,17 +50,15 @@ class NatureSelector(ViewSelector):
         pitch_jitter: float = 0.0,
         yaw_range: tuple[float, float] = (-180.0, 180.0),
     ) -> None:
-        self.num_views = _check_num_views(num_views)
+        self.num_views = check_int("num_views", num_views, minimum=1)
         if isinstance(pitch, Mapping):
             self.pitch: float | dict[str, float] = {
-                str(cat): _check_pitch(p, f"pitch[{cat!r}]") for cat, p in pitch.items()
+                str(cat): check_float(f"pitch[{cat!r}]", p, minimum=-90.0, maximum=90.0) for cat, p in pitch.items()
             }
         else:
-            self.pitch = _check_pitch(pitch, "pitch")
-        if isinstance(pitch_jitter, bool) or not isinstance(pitch_jitter, (int, float)) or not 0 <= pitch_jitter <= 180:
-            raise ValueError(f"`pitch_jitter` must be a number in [0, 180] degrees, got {pitch_jitter!r}")
-        self.pitch_jitter = float(pitch_jitter)
-        self.yaw_range = _check_range(yaw_range, "yaw_range", -180.0, 180.0)
+            self.pitch = check_float("pitch", pitch, minimum=-90.0, maximum=90.0)
+        self.pitch_jitter = check_float("pitch_jitter", pitch_jitter, minimum=0.0, maximum=180.0)
+        self.yaw_range = check_range("yaw_range", yaw_range, -180.0, 180.0, "degrees")
 
     def pitch_for(self, category: str) -> float:
         """The natural pitch (degrees) of ``category``."""
@@ -85,10 +78,9 @@ class NatureSelector(ViewSelector):
 
         Random draws: all yaws and pitch jitters at once, ``(B * num_views, 2)`` uniforms from ``generator``.
         """
-        predicted, _ = _check_pair(predicted, target)
+        predicted, _ = check_volume_pair(predicted, target)
         batch = predicted.shape[0]
-        if len(categories) != batch:
-            raise ValueError(f"`categories` must have one entry per object: got {len(categories)} for a batch of {batch}")
+        check_categories(categories, batch)
         # yaw uniform in the range; the pitch column of this draw is reused as the jitter's uniform
         draw = sample_uniform_viewpoints(
             batch * self.num_views, mode="angle", yaw_range=self.yaw_range, pitch_range=(-90.0, 90.0), generator=generator

@@ -1,7 +1,9 @@
 """Pictures of the view selection: error projection maps over all candidate views, and the viewpoint pool.
 
-matplotlib with the Agg backend (no display needed); every function saves a PNG and returns what it drew
-so callers (and tests) can check it without reading pixels.
+Figures are drawn on :class:`matplotlib.figure.Figure` objects, never through ``pyplot``: they need no
+display, are not registered with pyplot's figure manager (nothing to close, no leak), and importing this
+module leaves the user's matplotlib backend alone. Every function saves a PNG and returns what it drew so
+callers (and tests) can check it without reading pixels.
 """
 
 from __future__ import annotations
@@ -9,16 +11,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+from matplotlib.figure import Figure
+from torch import Tensor
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-from torch import Tensor  # noqa: E402
-
-from lightning_vtr.geometry import angle_bins, candidate_viewpoints, check_bin_interval, check_viewpoints  # noqa: E402
-from lightning_vtr.selection.pool import ViewpointPool  # noqa: E402
-from lightning_vtr.selection.projection import error_projection, nearest_bins, view_scores  # noqa: E402
+from lightning_vtr.geometry import angle_bins, candidate_viewpoints, check_bin_interval, check_viewpoints
+from lightning_vtr.selection.pool import ViewpointPool
+from lightning_vtr.selection.projection import error_projection, nearest_bins, view_scores
 
 __all__ = ["plot_error_projections", "plot_pool_distribution"]
 
@@ -45,12 +43,18 @@ def plot_error_projections(
         panel_size: inches per panel.
 
     Returns:
-        ``{"path", "figure", "scores" (V_c,), "marked_bins" (sorted flat bin indices), "grid" (rows, cols)}``.
+        ``{"path", "figure", "scores" (V_c,), "marked_bins" (sorted flat bin indices), "grid" (rows, cols)}``;
+        ``figure`` is a :class:`matplotlib.figure.Figure`.
+
+    Raises:
+        TypeError: ``volume_error`` is not a tensor.
+        ValueError: ``volume_error`` is not ``(R, R, R)``, a bad ``k`` or bad ``chosen`` viewpoints.
     """
     k = check_bin_interval(k)
-    if not isinstance(volume_error, Tensor) or volume_error.ndim != 3:
-        shape = tuple(volume_error.shape) if isinstance(volume_error, Tensor) else type(volume_error).__name__
-        raise ValueError(f"`volume_error` must have shape (R, R, R), got {shape}")
+    if not isinstance(volume_error, Tensor):
+        raise TypeError(f"`volume_error` must be a torch.Tensor of shape (R, R, R), got {type(volume_error).__name__}")
+    if volume_error.ndim != 3:
+        raise ValueError(f"`volume_error` must have shape (R, R, R), got {tuple(volume_error.shape)}")
     candidates = candidate_viewpoints(k)
     maps = error_projection(volume_error.detach().cpu().float(), candidates)  # (V_c, S, S)
     scores = view_scores(maps[None])[0]
@@ -61,7 +65,8 @@ def plot_error_projections(
     rows, cols = pitch_c.numel(), yaw_c.numel()
     vmax = max(float(maps.max()), 1e-12)
 
-    fig, axes = plt.subplots(rows, cols, figsize=(cols * panel_size, rows * panel_size * 1.15), squeeze=False)
+    fig = Figure(figsize=(cols * panel_size, rows * panel_size * 1.15))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for i_pitch in range(rows):
         for i_yaw in range(cols):
             index = i_pitch * cols + i_yaw
@@ -79,7 +84,6 @@ def plot_error_projections(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80)
-    plt.close(fig)
     return {"path": path, "figure": fig, "scores": scores, "marked_bins": sorted(marked), "grid": (rows, cols)}
 
 
@@ -91,14 +95,15 @@ def plot_pool_distribution(pool: ViewpointPool, path: str | Path = "viewpoint_po
         path: PNG file to write (parent directories are created).
 
     Returns:
-        ``{"path", "figure", "categories" (drawn order), "points" {category: number of viewpoints drawn}}``.
-        An empty pool gives one empty panel titled accordingly.
+        ``{"path", "figure", "categories" (drawn order), "points" {category: number of viewpoints drawn}}``;
+        ``figure`` is a :class:`matplotlib.figure.Figure`. An empty pool gives one empty panel titled accordingly.
     """
     categories = pool.categories()
     count = max(len(categories), 1)
     cols = min(count, 4)
     rows = (count + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.2 * rows), squeeze=False)
+    fig = Figure(figsize=(3.6 * cols, 2.2 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     points: dict[str, int] = {}
     for ax in axes.flat:
         ax.set_visible(False)
@@ -123,6 +128,5 @@ def plot_pool_distribution(pool: ViewpointPool, path: str | Path = "viewpoint_po
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80)
-    plt.close(fig)
     return {"path": path, "figure": fig, "categories": categories, "points": points}
 

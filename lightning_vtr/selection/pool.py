@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import check_viewpoints, normalize_viewpoints, sample_uniform_viewpoints
+from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = ["ViewpointPool"]
 
@@ -41,6 +42,7 @@ class ViewpointPool:
         fallback: uniform sampler for empty categories: ``"area"`` (uniform on the sphere) or ``"angle"``.
 
     Raises:
+        TypeError: ``capacity`` or ``num_views`` is not an int.
         ValueError: naming the argument and the bad value.
 
     Example::
@@ -53,15 +55,9 @@ class ViewpointPool:
     def __init__(
         self, capacity: int | None = None, num_views: int = 3, fallback: Literal["area", "angle"] = "area"
     ) -> None:
-        if capacity is not None and (isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1):
-            raise ValueError(f"`capacity` must be None or a positive int, got {capacity!r}")
-        if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
-            raise ValueError(f"`num_views` must be a positive int, got {num_views!r}")
-        if fallback not in ("area", "angle"):
-            raise ValueError(f"`fallback` must be 'area' or 'angle', got {fallback!r}")
-        self.capacity = capacity
-        self.num_views = num_views
-        self.fallback = fallback
+        self.capacity = None if capacity is None else check_int("capacity", capacity, minimum=1)
+        self.num_views = check_int("num_views", num_views, minimum=1)
+        self.fallback = check_choice("fallback", fallback, ("area", "angle"))
         # category -> list of (object id, (n, 2) float32 view set), oldest first
         self._entries: OrderedDict[str, list[tuple[str, Tensor]]] = OrderedDict()
 

@@ -25,7 +25,6 @@ break in one sortable integer), and gathers the value of the winning voxel.
 
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
 from typing import Literal
 
@@ -33,6 +32,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import (
+    DEFAULT_HALF_EXTENT,
     candidate_viewpoints,
     check_bin_interval,
     check_viewpoints,
@@ -41,15 +41,20 @@ from lightning_vtr.geometry import (
     voxel_centers,
     wrap_yaw,
 )
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
+    "check_volume_pair",
+    "check_volumes",
     "error_projection",
     "error_volume",
     "nearest_bins",
+    "projection_scores",
     "sample_around_bins",
     "select_views",
     "top_bins",
     "view_scores",
+    "visible_error_scores",
 ]
 
 #: Depths closer than this (world units; a voxel is 1/R >= 1e-3 wide) are treated as equal.
@@ -63,13 +68,36 @@ _table_cache: OrderedDict[tuple, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
 
 
 # --------------------------------------------------------------------------------------------- checks
-def _check_volumes(volumes: Tensor, name: str) -> Tensor:
+def _check_grid_shape(volumes: Tensor, name: str) -> None:
     if not isinstance(volumes, Tensor):
         raise TypeError(f"`{name}` must be a torch.Tensor, got {type(volumes).__name__}")
     if volumes.ndim != 4 or not (volumes.shape[1] == volumes.shape[2] == volumes.shape[3]):
         raise ValueError(f"`{name}` must have shape (B, R, R, R), got {tuple(volumes.shape)}")
     if volumes.shape[1] == 0:
-        raise ValueError(f"`{name}` is an empty grid (R = 0), got shape {tuple(volumes.shape)}")
+        raise ValueError(f"`{name}` must be a non-empty grid (R >= 1), got shape {tuple(volumes.shape)}")
+
+
+def _check_tensor_ndim(value: Tensor, name: str, ndim: int, shape: str) -> None:
+    if not isinstance(value, Tensor):
+        raise TypeError(f"`{name}` must be a torch.Tensor of shape {shape}, got {type(value).__name__}")
+    if value.ndim != ndim:
+        raise ValueError(f"`{name}` must have shape {shape}, got {tuple(value.shape)}")
+
+
+def check_volumes(volumes: Tensor, name: str = "volumes") -> Tensor:
+    """Check a batch of cubic voxel grids ``(B, R, R, R)``, ``R >= 1``; returns it as a float tensor.
+
+    A bool tensor is converted to the default float dtype; a float tensor is returned as is.
+
+    Args:
+        volumes: the grids to check.
+        name: the argument's name in error messages.
+
+    Raises:
+        TypeError: ``volumes`` is not a tensor, or is neither floating-point nor bool.
+        ValueError: another shape, or an empty grid (``R = 0``).
+    """
+    _check_grid_shape(volumes, name)
     if volumes.dtype == torch.bool:
         return volumes.to(torch.get_default_dtype())
     if not volumes.is_floating_point():
@@ -77,7 +105,19 @@ def _check_volumes(volumes: Tensor, name: str) -> Tensor:
     return volumes
 
 
-def _check_pair(predicted: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+def check_volume_pair(predicted: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """Check what every :class:`~lightning_vtr.selection.base.ViewSelector` receives: two batches of grids.
+
+    ``predicted`` and ``target`` must be ``(B, R, R, R)`` tensors of the same shape (see
+    :func:`check_volumes`); a custom selector can call this first to fail with the package's messages.
+
+    Returns:
+        ``(predicted, target)`` as float tensors (bool grids converted).
+
+    Raises:
+        TypeError: either is not a floating-point or bool tensor.
+        ValueError: the shapes differ (the message names both) or are not ``(B, R, R, R)`` with ``R >= 1``.
+    """
     if not isinstance(predicted, Tensor) or not isinstance(target, Tensor):
         raise TypeError(
             f"`predicted` and `target` must be torch.Tensors, got {type(predicted).__name__} and {type(target).__name__}"
@@ -87,7 +127,7 @@ def _check_pair(predicted: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
             f"`predicted` and `target` must have the same shape (B, R, R, R), got predicted "
             f"{tuple(predicted.shape)} and target {tuple(target.shape)}"
         )
-    return _check_volumes(predicted, "predicted"), _check_volumes(target, "target")
+    return check_volumes(predicted, "predicted"), check_volumes(target, "target")
 
 
 # --------------------------------------------------------------------------------------- error volume
@@ -115,14 +155,12 @@ def error_volume(
 
     Raises:
         ValueError: on mismatched shapes (naming both) or a bad ``threshold`` / ``mode`` / ``mask``.
+        TypeError: a non-tensor input or a non-number ``threshold``.
     """
-    predicted, target = _check_pair(predicted, target)
-    if not 0.0 <= threshold <= 1.0:
-        raise ValueError(f"`threshold` must lie in [0, 1], got {threshold!r}")
-    if mode not in ("binary", "soft"):
-        raise ValueError(f"`mode` must be 'binary' or 'soft', got {mode!r}")
-    if mask not in (None, "gt"):
-        raise ValueError(f"`mask` must be None or 'gt', got {mask!r}")
+    predicted, target = check_volume_pair(predicted, target)
+    check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+    check_choice("mode", mode, ("binary", "soft"))
+    check_choice("mask", mask, (None, "gt"))
     gt = target >= 0.5
     if mode == "binary":
         err = ((predicted >= threshold) != gt).to(predicted.dtype)
@@ -192,18 +230,18 @@ def _first_hit_keys(occupied: Tensor, resolution: int, viewpoints: Tensor, image
     Returns ``(B, V, S^2)``; ``iinfo(dtype).max`` where nothing is hit.
     """
     batch = occupied.shape[0]
-    n_views, pixels = viewpoints.shape[0], image_size * image_size
+    num_views, pixels = viewpoints.shape[0], image_size * image_size
     slot, key = _projection_table(resolution, viewpoints, image_size, half_extent, occupied.device)
     # one flat nonzero is cheaper than a 2-d one; split it into (object, voxel) arithmetically
     flat_ids = torch.nonzero(occupied.reshape(-1)).squeeze(1)
     n_vox = resolution**3
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
     index = slot.index_select(0, vox)  # (M, V)
-    index += (obj * (n_views * (pixels + 1)))[:, None]
+    index += (obj * (num_views * (pixels + 1)))[:, None]
     sentinel = torch.iinfo(key.dtype).max
-    best = torch.full((batch * n_views * (pixels + 1),), sentinel, dtype=key.dtype, device=occupied.device)
+    best = torch.full((batch * num_views * (pixels + 1),), sentinel, dtype=key.dtype, device=occupied.device)
     best.scatter_reduce_(0, index.view(-1), key.index_select(0, vox).view(-1), reduce="amin", include_self=True)
-    return best.view(batch, n_views, pixels + 1)[..., :pixels]
+    return best.view(batch, num_views, pixels + 1)[..., :pixels]
 
 
 def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
@@ -218,25 +256,47 @@ def _is_binary(flat: Tensor, eps: float) -> bool:
     return bool((flat == 1).logical_or_(flat <= eps).all())
 
 
-def _candidate_scores(
+def projection_scores(
     volumes: Tensor,
     viewpoints: Tensor,
     *,
-    reduction: Literal["sum", "mean"],
-    eps: float,
+    reduction: Literal["sum", "mean"] = "sum",
+    eps: float = 0.0,
     binary: bool | None = None,
 ) -> Tensor:
-    """``view_scores(error_projection(volumes, viewpoints, eps=eps), reduction=...)`` without the float maps.
+    """``view_scores(error_projection(volumes, viewpoints, eps=eps), reduction=...)`` without building the maps.
 
-    ``binary=True`` asserts a ``{0, 1}`` volume (skips the check); scores are then hit-pixel counts.
+    The error-guided selector scores every candidate view of a batch this way: it skips the ``(B, V, R, R)``
+    float maps (and, for a binary error, the gather of hit values), which dominate the cost of the two-step form.
+    Images have the default size ``R`` and half-extent :data:`~lightning_vtr.geometry.DEFAULT_HALF_EXTENT`.
+
+    Args:
+        volumes: ``(B, R, R, R)`` errors, floating-point or bool (a bool grid is used as is, not converted).
+        viewpoints: ``(V, 2)`` (yaw, pitch) in degrees.
+        reduction: ``"sum"`` or ``"mean"`` over hit pixels, as in :func:`view_scores`.
+        eps: voxels with value ``<= eps`` are transparent.
+        binary: ``True`` asserts that ``volumes`` holds only 0 and 1 (skips checking it; scores are then
+            hit-pixel counts); ``None`` checks.
+
+    Returns:
+        ``(B, V)`` scores, dtype of ``volumes`` (the default float dtype for a bool grid).
+
+    Raises:
+        TypeError: ``volumes`` is not a floating-point or bool tensor.
+        ValueError: ``volumes`` is not ``(B, R, R, R)`` or ``reduction`` is unknown.
     """
+    # Shape only: converting a bool grid to float would cost what this function exists to save.
+    _check_grid_shape(volumes, "volumes")
+    if not (volumes.is_floating_point() or volumes.dtype == torch.bool):
+        raise TypeError(f"`volumes` must be a floating-point (or bool) tensor, got dtype {volumes.dtype}")
+    check_choice("reduction", reduction, ("sum", "mean"))
     batch, resolution = volumes.shape[0], volumes.shape[1]
     dtype = volumes.dtype if volumes.is_floating_point() else torch.get_default_dtype()
     if batch == 0:
         return torch.zeros(0, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     flat = volumes.reshape(batch, -1)
     occupied = flat.bool() if binary else flat > eps  # binary: values are exactly 0 or 1
-    best = _first_hit_keys(occupied, resolution, viewpoints, resolution, math.sqrt(3) / 2)
+    best = _first_hit_keys(occupied, resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
     hits = (best < torch.iinfo(best.dtype).max).sum(-1, dtype=torch.int32)
     if binary or (binary is None and _is_binary(flat, eps)):
         total = hits.to(dtype)
@@ -247,12 +307,55 @@ def _candidate_scores(
     return torch.where(hits > 0, total / hits.clamp_min(1).to(total.dtype), torch.zeros_like(total))
 
 
+def visible_error_scores(
+    predicted: Tensor,
+    target: Tensor,
+    viewpoints: Tensor,
+    *,
+    threshold: float = 0.4,
+    mode: Literal["binary", "soft"] = "binary",
+) -> Tensor:
+    """What a camera at each viewpoint would see wrong: the side-aware view score.
+
+    Along each pixel's ray the first voxel occupied in the prediction (``>= threshold``) *or* in the ground
+    truth is the surface that camera sees; the pixel takes the error at that voxel (``mode`` as in
+    :func:`error_volume`) and the view's score is the sum over pixels. Unlike the sum of the error's own
+    first-hit map, which is the area of the error's silhouette and the same for a view and its antipode, a
+    wrong top slab scores high from above and 0 from below, where correct voxels hide it.
+
+    Args:
+        predicted: ``(B, R, R, R)`` occupancy probabilities in ``[0, 1]``.
+        target: ``(B, R, R, R)`` ground-truth occupancy in ``{0, 1}``.
+        viewpoints: ``(V, 2)`` (yaw, pitch) in degrees.
+        threshold: occupancy threshold of the prediction.
+        mode: ``"binary"`` (the error is 1 where prediction and truth disagree) or ``"soft"``
+            (``|predicted - target|`` at the visible voxel).
+
+    Returns:
+        ``(B, V)`` scores, dtype of ``predicted``.
+    """
+    predicted, target = check_volume_pair(predicted, target)
+    threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
+    check_choice("mode", mode, ("binary", "soft"))
+    batch, resolution = predicted.shape[0], predicted.shape[1]
+    if batch == 0:
+        return predicted.new_zeros(0, viewpoints.shape[0])
+    occupied_pred, occupied_gt = predicted >= threshold, target >= 0.5
+    if mode == "binary":
+        errors = (occupied_pred != occupied_gt).to(predicted.dtype)
+    else:
+        errors = (predicted - target).abs()
+    surface = (occupied_pred | occupied_gt).reshape(batch, -1)
+    best = _first_hit_keys(surface, resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
+    return _hit_values(best, errors.reshape(batch, -1)).sum(-1)
+
+
 def error_projection(
     volumes: Tensor,
     viewpoints: Tensor,
     *,
     image_size: int | None = None,
-    half_extent: float = math.sqrt(3) / 2,
+    half_extent: float = DEFAULT_HALF_EXTENT,
     eps: float = 0.0,
 ) -> Tensor:
     """Orthographic first-hit projection of voxel grids onto a set of viewpoints.
@@ -268,7 +371,8 @@ def error_projection(
         viewpoints: ``(V, 2)`` (yaw, pitch) in degrees.
         image_size: ``S``, the side of the square projection in pixels; defaults to ``R``.
         half_extent: half the side of the square the image covers, in world units. The default
-            ``sqrt(3) / 2`` keeps the whole unit cube in view from any direction.
+            :data:`~lightning_vtr.geometry.DEFAULT_HALF_EXTENT` (``sqrt(3) / 2``) keeps the whole unit cube
+            in view from any direction.
         eps: voxels with value ``<= eps`` are transparent.
 
     Returns:
@@ -277,18 +381,16 @@ def error_projection(
 
     Raises:
         ValueError: for a non-cubic or empty grid, no viewpoints, or a bad ``image_size`` / ``half_extent``.
+        TypeError: for a non-tensor ``volumes``, a non-int ``image_size`` or a non-number ``half_extent``.
     """
     unbatched = isinstance(volumes, Tensor) and volumes.ndim == 3
-    vol = _check_volumes(volumes[None] if unbatched else volumes, "volumes")
+    vol = check_volumes(volumes[None] if unbatched else volumes, "volumes")
     vp = check_viewpoints(viewpoints)
     if vp.ndim != 2 or vp.shape[0] == 0:
         raise ValueError(f"`viewpoints` must have shape (V, 2) with V >= 1, got {tuple(vp.shape)}")
     batch, resolution = vol.shape[0], vol.shape[1]
-    size = resolution if image_size is None else image_size
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"`image_size` must be a positive int, got {image_size!r}")
-    if not (half_extent > 0 and math.isfinite(half_extent)):
-        raise ValueError(f"`half_extent` must be a positive finite number (world units), got {half_extent!r}")
+    size = resolution if image_size is None else check_int("image_size", image_size, minimum=1)
+    check_float("half_extent", half_extent, minimum=0.0, min_open=True)
     out_shape = (batch, vp.shape[0], size, size)
     if batch == 0:
         result = vol.new_zeros(out_shape)
@@ -315,12 +417,13 @@ def view_scores(projections: Tensor, *, reduction: Literal["sum", "mean"] = "sum
 
     Returns:
         ``(B, V)`` scores, dtype of ``projections``.
+
+    Raises:
+        TypeError: ``projections`` is not a tensor.
+        ValueError: another shape, or an unknown ``reduction``.
     """
-    if not isinstance(projections, Tensor) or projections.ndim != 4:
-        shape = tuple(projections.shape) if isinstance(projections, Tensor) else type(projections).__name__
-        raise ValueError(f"`projections` must have shape (B, V, S, S), got {shape}")
-    if reduction not in ("sum", "mean"):
-        raise ValueError(f"`reduction` must be 'sum' or 'mean', got {reduction!r}")
+    _check_tensor_ndim(projections, "projections", 4, "(B, V, S, S)")
+    check_choice("reduction", reduction, ("sum", "mean"))
     total = projections.sum(dim=(-2, -1))
     if reduction == "sum":
         return total
@@ -357,12 +460,13 @@ def top_bins(scores: Tensor, n: int = 3, *, generator: torch.Generator | None = 
     Exactly equal scores are ordered at random (one uniform per score from ``generator``). Ties are
     common: with a binary error a view and its antipode see mirror-image silhouettes and score the same,
     and a fixed order would always favour the lower-index (southern, western) bin.
+
+    Raises:
+        TypeError: ``scores`` is not a tensor or ``n`` is not an int.
+        ValueError: ``scores`` is not ``(B, V)`` or ``n`` is not in ``[1, V]``.
     """
-    if not isinstance(scores, Tensor) or scores.ndim != 2:
-        shape = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
-        raise ValueError(f"`scores` must have shape (B, V), got {shape}")
-    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= scores.shape[1]:
-        raise ValueError(f"`n` must be an int in [1, {scores.shape[1]}] (the number of candidate views), got {n!r}")
+    _check_tensor_ndim(scores, "scores", 2, "(B, V)")
+    check_int("n", n, minimum=1, maximum=scores.shape[1])
     priority = torch.rand(scores.shape, generator=generator, dtype=torch.float64).to(scores.device)
     shuffled = torch.argsort(priority, dim=1)
     by_score = torch.argsort(-scores.detach().to(torch.float64).gather(1, shuffled), dim=1, stable=True)
@@ -395,15 +499,18 @@ def select_views(
 
     Returns:
         ``(B, n, 2)`` (yaw, pitch) in degrees, best bin first, on the device of ``scores``.
+
+    Raises:
+        TypeError: ``scores`` is not a tensor, or ``n`` / ``sigma`` has the wrong type.
+        ValueError: a bad ``k``, ``scores`` not ``(B, V)`` for that ``k``, ``n`` out of range or ``sigma < 0``.
     """
     k = check_bin_interval(k)
     candidates = candidate_viewpoints(k)
-    if not isinstance(scores, Tensor) or scores.ndim != 2 or scores.shape[1] != candidates.shape[0]:
-        shape = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
-        raise ValueError(f"`scores` must have shape (B, {candidates.shape[0]}) for K={k}, got {shape}")
-    sigma = k / 6.0 if sigma is None else sigma
-    if not (sigma >= 0 and math.isfinite(sigma)):
-        raise ValueError(f"`sigma` must be a finite number >= 0 (degrees), got {sigma!r}")
+    expected = f"(B, {candidates.shape[0]}) for K={k}"
+    _check_tensor_ndim(scores, "scores", 2, expected)
+    if scores.shape[1] != candidates.shape[0]:
+        raise ValueError(f"`scores` must have shape {expected}, got {tuple(scores.shape)}")
+    sigma = k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)
     best = top_bins(scores, n, generator=generator)  # (B, n)
     return sample_around_bins(best, k, sigma=sigma, generator=generator).to(
         scores.dtype if scores.is_floating_point() else torch.get_default_dtype()
@@ -416,8 +523,11 @@ def sample_around_bins(
     """Viewpoints ``(..., 2)`` in degrees drawn from ``N(centre of bin, sigma)`` for flat bin indices ``(...)``.
 
     ``sigma`` defaults to ``K / 6``; yaw is wrapped and pitch clamped.
+
+    Raises:
+        ValueError: a bad ``k`` or a negative ``sigma``.
     """
     k = check_bin_interval(k)
-    sigma = k / 6.0 if sigma is None else sigma
+    sigma = k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)
     centres = candidate_viewpoints(k).to(bins.device, torch.float64)[bins]
     return sample_gaussian_viewpoints(centres, sigma, generator=generator)

@@ -9,25 +9,10 @@ from torch import Tensor
 
 from lightning_vtr.geometry import sample_uniform_viewpoints
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
-from lightning_vtr.selection.projection import _check_pair
+from lightning_vtr.selection.projection import check_volume_pair
+from lightning_vtr.utils.validation import check_choice, check_int, check_range
 
 __all__ = ["RandomSelector"]
-
-
-def _check_range(value: tuple[float, float], name: str, low: float, high: float) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"`{name}` must be a pair (low, high) in degrees, got {value!r}") from None
-    if not (low <= lo <= hi <= high):
-        raise ValueError(f"`{name}` must satisfy {low} <= low <= high <= {high} (degrees), got {value!r}")
-    return lo, hi
-
-
-def _check_num_views(num_views: int) -> int:
-    if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
-        raise ValueError(f"`num_views` must be a positive int, got {num_views!r}")
-    return num_views
 
 
 class RandomSelector(ViewSelector):
@@ -45,6 +30,7 @@ class RandomSelector(ViewSelector):
         pitch_range: ``(low, high)`` pitch in degrees, within [-90, 90].
 
     Raises:
+        TypeError: an argument of the wrong type (e.g. a range that is not a pair of numbers).
         ValueError: naming the argument and the bad value.
 
     Example::
@@ -61,12 +47,10 @@ class RandomSelector(ViewSelector):
         yaw_range: tuple[float, float] = (-180.0, 180.0),
         pitch_range: tuple[float, float] = (-90.0, 90.0),
     ) -> None:
-        self.num_views = _check_num_views(num_views)
-        if mode not in ("angle", "area"):
-            raise ValueError(f"`mode` must be 'angle' or 'area', got {mode!r}")
-        self.mode = mode
-        self.yaw_range = _check_range(yaw_range, "yaw_range", -180.0, 180.0)
-        self.pitch_range = _check_range(pitch_range, "pitch_range", -90.0, 90.0)
+        self.num_views = check_int("num_views", num_views, minimum=1)
+        self.mode = check_choice("mode", mode, ("angle", "area"))
+        self.yaw_range = check_range("yaw_range", yaw_range, -180.0, 180.0, "degrees")
+        self.pitch_range = check_range("pitch_range", pitch_range, -90.0, 90.0, "degrees")
 
     def select(
         self,
@@ -77,7 +61,7 @@ class RandomSelector(ViewSelector):
         context: SelectionContext | None = None,
     ) -> Tensor:
         """Viewpoints ``(B, num_views, 2)`` in degrees; ``B = 0`` gives an empty result."""
-        predicted, _ = _check_pair(predicted, target)
+        predicted, _ = check_volume_pair(predicted, target)
         batch = predicted.shape[0]
         views = sample_uniform_viewpoints(
             batch * self.num_views,

@@ -18,7 +18,8 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import wrap_yaw
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.utils.validation import check_float, check_int
 
 __all__ = ["VIATSelector"]
 
@@ -139,7 +140,8 @@ class VIATSelector(ViewSelector):
         model_batch_size: most view sets per model call (``None``: all candidates at once).
 
     Raises:
-        ValueError: for a non-positive count, a population below 2, or a negative rate or weight.
+        TypeError: an argument of the wrong type (named in the message, with its value).
+        ValueError: for a non-positive count, a population below 2, or a non-positive rate or negative weight.
 
     Example::
 
@@ -162,27 +164,16 @@ class VIATSelector(ViewSelector):
         num_views: int = 3,
         model_batch_size: int | None = None,
     ) -> None:
-        for name, value, low in (
-            ("num_components", num_components, 1),
-            ("population", population, 2),
-            ("iterations", iterations, 0),
-            ("num_views", num_views, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"`{name}` must be an int >= {low}, got {value!r}")
-        if not (lr > 0 and math.isfinite(lr)):
-            raise ValueError(f"`lr` must be a positive finite number, got {lr!r}")
-        if not (entropy_weight >= 0 and math.isfinite(entropy_weight)):
-            raise ValueError(f"`entropy_weight` must be a finite number >= 0, got {entropy_weight!r}")
-        if model_batch_size is not None and (not isinstance(model_batch_size, int) or model_batch_size < 1):
-            raise ValueError(f"`model_batch_size` must be None or an int >= 1, got {model_batch_size!r}")
-        self.num_components = num_components
-        self.population = population
-        self.lr = lr
-        self.iterations = iterations
-        self.entropy_weight = entropy_weight
-        self.num_views = num_views
-        self.model_batch_size = model_batch_size
+        self.num_components = check_int("num_components", num_components, minimum=1)
+        # rank-based NES utilities need at least a better and a worse candidate
+        self.population = check_int("population", population, minimum=2)
+        self.lr = check_float("lr", lr, minimum=0.0, min_open=True)
+        self.iterations = check_int("iterations", iterations, minimum=0)
+        self.entropy_weight = check_float("entropy_weight", entropy_weight, minimum=0.0)
+        self.num_views = check_int("num_views", num_views, minimum=1)
+        self.model_batch_size = (
+            None if model_batch_size is None else check_int("model_batch_size", model_batch_size, minimum=1)
+        )
         self._mixtures: dict[str, _Mixture] = {}
 
     # ------------------------------------------------------------------------------------ public API
@@ -206,6 +197,7 @@ class VIATSelector(ViewSelector):
 
         Raises:
             ValueError: if ``context`` is missing or incomplete, or the sizes disagree.
+            TypeError: if ``target`` is not a tensor or ``categories`` is a single string.
         """
         # 1. check inputs
         self._check_inputs(target, categories, context)
@@ -277,12 +269,12 @@ class VIATSelector(ViewSelector):
                 "viewpoints by rendering candidate views and querying the model's loss. Got "
                 f"context={'None' if context is None else 'a context without model/synthesizer'}."
             )
-        if not isinstance(target, Tensor) or target.ndim != 4:
-            shape = tuple(target.shape) if isinstance(target, Tensor) else type(target).__name__
-            raise ValueError(f"`target` must have shape (B, R, R, R), got {shape}")
+        if not isinstance(target, Tensor):
+            raise TypeError(f"`target` must be a torch.Tensor of shape (B, R, R, R), got {type(target).__name__}")
+        if target.ndim != 4:
+            raise ValueError(f"`target` must have shape (B, R, R, R), got {tuple(target.shape)}")
         batch = target.shape[0]
-        if len(categories) != batch:
-            raise ValueError(f"`categories` must hold one name per object: expected {batch}, got {len(categories)}")
+        check_categories(categories, batch)
         if len(context.requests) != batch:
             raise ValueError(
                 f"`context.requests` must hold one SynthesisRequest per object: expected {batch}, got {len(context.requests)}"

@@ -6,9 +6,10 @@ Images are keyed by ``(synthesizer config_key, object_id, target viewpoint)``; t
     <root>/<sha256(config_key)[:16]>/config_key.txt
     <root>/<sha256(config_key)[:16]>/<quoted object_id>/<yaw_mdeg>_<pitch_mdeg>.png
 
-Writes go to a temporary file in the same directory followed by :func:`os.replace`, so a reader (or another
-DDP rank writing the same key) never sees a half-written PNG, and a leftover temporary file from a killed
-run is never mistaken for a hit. The source images of an object are assumed fixed for a dataset: point
+Writes go through :func:`lightning_vtr.utils.io.atomic_open` (a uniquely named temporary file in the same
+directory, flushed to disk, then renamed over the destination), so a reader (or another DDP rank writing the
+same key) never sees a half-written PNG, and a leftover temporary file from a killed run is never mistaken
+for a hit. The source images of an object are assumed fixed for a dataset: point
 different datasets at different cache roots.
 """
 
@@ -16,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import uuid
 from pathlib import Path
 from urllib.parse import quote
 
@@ -27,14 +27,26 @@ from torch import Tensor
 
 from lightning_vtr.geometry import check_viewpoints
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+from lightning_vtr.utils.io import atomic_open
+from lightning_vtr.utils.validation import check_type
 
-__all__ = ["CachedSynthesizer", "SynthesisCache"]
+__all__ = ["CachedSynthesizer", "SynthesisCache", "viewpoint_key"]
 
 #: Viewpoints are rounded to this many thousandths of a degree before keying.
 _MILLIDEGREES = 1000
 
 
-def _viewpoint_key(viewpoint: Tensor | np.ndarray | tuple[float, float]) -> str:
+def viewpoint_key(viewpoint: Tensor | np.ndarray | tuple[float, float]) -> str:
+    """A file-name-safe key ``"<yaw>_<pitch>"`` of one viewpoint, in integer thousandths of a degree.
+
+    The viewpoint (degrees) is normalised (yaw wrapped into ``[-180, 180)``, pitch clamped to ``[-90, 90]``)
+    and rounded to ``1e-3`` degree, so equal views key equally: ``(180, 0)`` and ``(-180, 0)`` both give
+    ``"-180000_0"``. The cache names its files by it and the Zero-1-to-3 synthesizer derives each view's
+    noise seed from it, so a cached view and a regenerated one agree.
+
+    Raises:
+        ValueError: ``viewpoint`` is not one finite (yaw, pitch) pair.
+    """
     vp = check_viewpoints(torch.as_tensor(np.asarray(viewpoint, dtype=np.float64)), "viewpoint")
     if vp.shape != (2,):
         raise ValueError(f"`viewpoint` must be one (yaw, pitch) pair in degrees, got shape {tuple(vp.shape)}")
@@ -62,17 +74,29 @@ class SynthesisCache:
         self.root = Path(root)
 
     def config_dir(self, config_key: str) -> Path:
-        """The directory holding every image made under ``config_key``."""
-        if not isinstance(config_key, str) or not config_key:
+        """The directory holding every image made under ``config_key``.
+
+        Raises:
+            TypeError: ``config_key`` is not a string.
+            ValueError: ``config_key`` is empty.
+        """
+        check_type("config_key", config_key, str)
+        if not config_key:
             raise ValueError(f"`config_key` must be a non-empty string, got {config_key!r}")
         return self.root / hashlib.sha256(config_key.encode("utf-8")).hexdigest()[:16]
 
     def path(self, object_id: str, viewpoint: Tensor | tuple[float, float], config_key: str) -> Path:
-        """Where the image of ``object_id`` at ``viewpoint`` (yaw, pitch degrees) under ``config_key`` lives."""
-        if not isinstance(object_id, str) or not object_id:
+        """Where the image of ``object_id`` at ``viewpoint`` (yaw, pitch degrees) under ``config_key`` lives.
+
+        Raises:
+            TypeError: ``object_id`` or ``config_key`` is not a string.
+            ValueError: either is empty, or ``viewpoint`` is not one (yaw, pitch) pair.
+        """
+        check_type("object_id", object_id, str)
+        if not object_id:
             raise ValueError(f"`object_id` must be a non-empty string, got {object_id!r}")
         # quote() makes any id (slashes, dots) a single safe path component
-        return self.config_dir(config_key) / quote(object_id, safe="") / f"{_viewpoint_key(viewpoint)}.png"
+        return self.config_dir(config_key) / quote(object_id, safe="") / f"{viewpoint_key(viewpoint)}.png"
 
     def get(self, object_id: str, viewpoint: Tensor | tuple[float, float], config_key: str) -> np.ndarray | None:
         """The cached ``(H, W, 4)`` uint8 RGBA image, or ``None`` on a miss (a missing or unreadable file)."""
@@ -87,32 +111,25 @@ class SynthesisCache:
             return None
 
     def put(self, object_id: str, viewpoint: Tensor | tuple[float, float], config_key: str, image: np.ndarray) -> Path:
-        """Store an ``(H, W, 4)`` uint8 RGBA image atomically; returns its path."""
+        """Store an ``(H, W, 4)`` uint8 RGBA image atomically; returns its path.
+
+        Raises:
+            ValueError: ``image`` is not an ``(H, W, 4)`` uint8 array (or a key argument is bad, see :meth:`path`).
+        """
         image = np.asarray(image)
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 4:
             raise ValueError(
                 f"`image` must be an (H, W, 4) uint8 RGBA array, got shape {image.shape} and dtype {image.dtype}"
             )
         path = self.path(object_id, viewpoint, config_key)
-        path.parent.mkdir(parents=True, exist_ok=True)
         key_file = path.parent.parent / "config_key.txt"
+        # fsync: a cache entry must survive a crash whole, since a later run trusts every file it finds
         if not key_file.exists():
-            self._atomic_write(key_file, lambda f: f.write(config_key.encode("utf-8")))
-        self._atomic_write(path, lambda f: Image.fromarray(image, mode="RGBA").save(f, format="PNG"))
+            with atomic_open(key_file, "wb", fsync=True) as f:
+                f.write(config_key.encode("utf-8"))
+        with atomic_open(path, "wb", fsync=True) as f:
+            Image.fromarray(image, mode="RGBA").save(f, format="PNG")
         return path
-
-    @staticmethod
-    def _atomic_write(path: Path, write) -> None:
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-        try:
-            with open(tmp, "wb") as f:
-                write(f)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
 
 
 class CachedSynthesizer(Synthesizer):
@@ -131,9 +148,7 @@ class CachedSynthesizer(Synthesizer):
     """
 
     def __init__(self, synthesizer: Synthesizer, cache_dir: str | os.PathLike) -> None:
-        if not isinstance(synthesizer, Synthesizer):
-            raise TypeError(f"`synthesizer` must be a Synthesizer, got {type(synthesizer).__name__}")
-        self.synthesizer = synthesizer
+        self.synthesizer = check_type("synthesizer", synthesizer, Synthesizer)
         self.cache = SynthesisCache(cache_dir)
 
     @property

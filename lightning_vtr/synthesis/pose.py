@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import angular_distance, check_viewpoints, wrap_yaw
+from lightning_vtr.utils.validation import check_choice
 
 __all__ = [
     "POSE_EMBEDDINGS",
@@ -97,9 +98,11 @@ def relative_pose(
 
     Returns:
         ``(..., 4)`` float tensor; angles in **radians**.
+
+    Raises:
+        ValueError: an unknown ``embedding`` or malformed viewpoints.
     """
-    if embedding not in POSE_EMBEDDINGS:
-        raise ValueError(f"`embedding` must be one of {POSE_EMBEDDINGS}, got {embedding!r}")
+    check_choice("embedding", embedding, POSE_EMBEDDINGS)
     source = check_viewpoints(source, "source")
     target = check_viewpoints(target, "target")
     source, target = torch.broadcast_tensors(source, target.to(source.dtype))

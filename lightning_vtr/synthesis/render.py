@@ -10,6 +10,7 @@ import numpy as np
 import trimesh
 
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+from lightning_vtr.utils.validation import check_int
 
 __all__ = ["RenderSynthesizer"]
 
@@ -26,16 +27,16 @@ class RenderSynthesizer(Synthesizer):
         renderer_kwargs: passed to :func:`lightning_vtr.renderer.get_renderer` (camera type, fov, distance).
 
     Raises:
-        ValueError: at synthesis time, for a request without a mesh path (name the object).
+        TypeError: ``image_size`` or ``max_cached_meshes`` is not an int.
+        ValueError: ``image_size < 1`` or ``max_cached_meshes < 0``; at synthesis time, for a request
+            without a mesh path (naming the object).
     """
 
     needs_source_images = False
 
     def __init__(self, image_size: int = 128, max_cached_meshes: int = 64, **renderer_kwargs: Any) -> None:
-        if image_size <= 0:
-            raise ValueError(f"`image_size` must be positive, got {image_size}")
-        self.image_size = int(image_size)
-        self.max_cached_meshes = int(max_cached_meshes)
+        self.image_size = check_int("image_size", image_size, minimum=1)
+        self.max_cached_meshes = check_int("max_cached_meshes", max_cached_meshes, minimum=0)
         self.renderer_kwargs = dict(renderer_kwargs)
         self._meshes: OrderedDict[str, trimesh.Trimesh] = OrderedDict()
 

@@ -26,8 +26,9 @@ from torch import Tensor, nn
 
 from lightning_vtr.geometry import check_viewpoints
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
-from lightning_vtr.synthesis.cache import _viewpoint_key
+from lightning_vtr.synthesis.cache import viewpoint_key
 from lightning_vtr.synthesis.pose import POSE_EMBEDDINGS, nearest_source_view, relative_pose
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
@@ -217,6 +218,7 @@ class Zero123Synthesizer(Synthesizer):
 
     Raises:
         Zero123CheckpointError: if the components do not fit together (every mismatch listed).
+        TypeError: for an argument of the wrong type (e.g. a float ``image_size``).
         ValueError: for an out-of-range argument.
 
     Example:
@@ -256,18 +258,15 @@ class Zero123Synthesizer(Synthesizer):
         problems = self._check_components(unet, vae, image_encoder, projection, scheduler)
         if problems:
             raise Zero123CheckpointError("Zero-1-to-3 components do not fit together:\n  - " + "\n  - ".join(problems))
-        if pose_embedding not in POSE_EMBEDDINGS:
-            raise ValueError(f"`pose_embedding` must be one of {POSE_EMBEDDINGS}, got {pose_embedding!r}")
+        check_choice("pose_embedding", pose_embedding, POSE_EMBEDDINGS)
         self._check_generation_args(num_inference_steps, guidance_scale, eta)
         for name, value in (("image_size", image_size), ("batch_size", batch_size), ("clip_size", clip_size)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"`{name}` must be a positive int, got {value!r}")
-        if not 0.0 < foreground_ratio <= 1.0:
-            raise ValueError(f"`foreground_ratio` must be in (0, 1], got {foreground_ratio}")
-        if not 0.0 < background_threshold <= 1.0:
-            raise ValueError(f"`background_threshold` must be in (0, 1], got {background_threshold}")
-        if len(image_mean) != 3 or len(image_std) != 3:
-            raise ValueError(f"`image_mean` and `image_std` must have 3 entries, got {image_mean} and {image_std}")
+            check_int(name, value, minimum=1)
+        check_float("foreground_ratio", foreground_ratio, minimum=0.0, maximum=1.0, min_open=True)
+        check_float("background_threshold", background_threshold, minimum=0.0, maximum=1.0, min_open=True)
+        for name, value in (("image_mean", image_mean), ("image_std", image_std)):
+            if len(value) != 3:
+                raise ValueError(f"`{name}` must have 3 entries (RGB), got {value!r}")
 
         self.unet, self.vae, self.image_encoder, self.projection, self.scheduler = (
             unet,
@@ -329,6 +328,7 @@ class Zero123Synthesizer(Synthesizer):
 
         Raises:
             FileNotFoundError: if ``path`` is not a directory.
+            ValueError: for an unknown ``pose_embedding`` (or a bad constructor argument in ``kwargs``).
             Zero123CheckpointError: listing every missing or mismatched component with what was expected in which
                 subfolder and what was found.
         """
@@ -338,8 +338,7 @@ class Zero123Synthesizer(Synthesizer):
         path = Path(path)
         if not path.is_dir():
             raise FileNotFoundError(f"`path` must be a Zero-1-to-3 checkpoint directory, got {str(path)!r}")
-        if pose_embedding not in ("auto", *POSE_EMBEDDINGS):
-            raise ValueError(f"`pose_embedding` must be 'auto' or one of {POSE_EMBEDDINGS}, got {pose_embedding!r}")
+        check_choice("pose_embedding", pose_embedding, ("auto", *POSE_EMBEDDINGS))
 
         problems: list[str] = []
         loaded: dict[str, Any] = {}
@@ -512,16 +511,13 @@ class Zero123Synthesizer(Synthesizer):
 
     @staticmethod
     def _check_generation_args(num_inference_steps: Any, guidance_scale: Any, eta: Any) -> None:
-        if isinstance(num_inference_steps, bool) or not isinstance(num_inference_steps, int) or num_inference_steps < 1:
-            raise ValueError(f"`num_inference_steps` must be a positive int, got {num_inference_steps!r}")
-        if not isinstance(guidance_scale, (int, float)) or not math.isfinite(guidance_scale) or guidance_scale < 0:
-            raise ValueError(f"`guidance_scale` must be a finite number >= 0, got {guidance_scale!r}")
-        if not isinstance(eta, (int, float)) or not 0.0 <= eta <= 1.0:
-            raise ValueError(f"`eta` must be in [0, 1], got {eta!r}")
+        check_int("num_inference_steps", num_inference_steps, minimum=1)
+        check_float("guidance_scale", guidance_scale, minimum=0.0)
+        check_float("eta", eta, minimum=0.0, maximum=1.0)
 
     def pair_seed(self, object_id: str, target_viewpoint: Tensor) -> int:
         """The noise seed of one (object, target viewpoint in degrees) pair, derived from ``seed``."""
-        digest = hashlib.sha256(f"{self.seed}|{object_id}|{_viewpoint_key(target_viewpoint)}".encode()).digest()
+        digest = hashlib.sha256(f"{self.seed}|{object_id}|{viewpoint_key(target_viewpoint)}".encode()).digest()
         return int.from_bytes(digest[:8], "little") & (2**63 - 1)
 
     # ------------------------------------------------------------------ the pipeline
@@ -538,7 +534,12 @@ class Zero123Synthesizer(Synthesizer):
         output_size: int,
         output_type: str,
     ) -> tuple[list[np.ndarray], Tensor, Tensor, list[int]]:
-        """Validate everything before any work starts; returns normalised ``(images, source, target, seeds)``."""
+        """Validate everything before any work starts; returns normalised ``(images, source, target, seeds)``.
+
+        Raises:
+            TypeError: a count or setting of the wrong type (e.g. a float ``output_size``).
+            ValueError: a bad image, mismatched lengths or an out-of-range setting (named in the message).
+        """
         images = list(source_images)
         for i, image in enumerate(images):
             if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 4:
@@ -559,10 +560,8 @@ class Zero123Synthesizer(Synthesizer):
         if len(seeds) != n:
             raise ValueError(f"`seeds` must have one entry per pair ({n}), got {len(seeds)}")
         self._check_generation_args(num_inference_steps, guidance_scale, eta)
-        if isinstance(output_size, bool) or not isinstance(output_size, int) or output_size < 1:
-            raise ValueError(f"`output_size` must be a positive int, got {output_size!r}")
-        if output_type not in ("np", "pt"):
-            raise ValueError(f"`output_type` must be 'np' or 'pt', got {output_type!r}")
+        check_int("output_size", output_size, minimum=1)
+        check_choice("output_type", output_type, ("np", "pt"))
         return images, src, tgt, seeds
 
     @torch.no_grad()

@@ -36,6 +36,8 @@ def atomic_open(path: str | Path, mode: str = "wb", *, fsync: bool = False) -> I
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        # mkstemp creates 0600; give the file the permissions a plain open() would (a shared cache stays readable)
+        os.chmod(tmp, 0o666 & ~_umask())
         with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as f:
             yield f
             if fsync:
@@ -45,6 +47,12 @@ def atomic_open(path: str | Path, mode: str = "wb", *, fsync: bool = False) -> I
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write(path: str | Path, data: bytes | str, *, fsync: bool = False) -> None:

@@ -1,3 +1,5 @@
+"""``lightning-vtr fit|validate|test`` and VTRLightningCLI: the package's defaults live in the class."""
+
 from __future__ import annotations
 
 import json
@@ -7,6 +9,9 @@ import pytest
 import yaml
 
 from lightning_vtr.cli import main
+from lightning_vtr.cli.lightning import VTRLightningCLI
+from lightning_vtr.data.datamodule import VTRDataModule
+from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "pix2vox_tiny_vtr.yaml"
 
@@ -37,3 +42,25 @@ def test_fit_from_the_config_generates_samples(tiny_dataset, tmp_path):
     records = sorted((tmp_path / "vtr_selection").glob("epoch_*.json"))
     assert [r.name for r in records] == ["epoch_0000.json"]  # epoch 0 of 2: the last epoch generates nothing
     assert len(json.loads(records[0].read_text())["objects"]) == 1  # 5 % of 21 training objects, at least one
+
+
+def test_the_class_alone_has_the_package_defaults(tmp_path):
+    cli = VTRLightningCLI(
+        run=False,
+        args=["--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus", "--model.preset=tiny", f"--data.root={tmp_path}",
+              "--trainer.logger=false", "--trainer.enable_checkpointing=false"],
+    )
+    assert isinstance(cli.model, Pix2VoxPlusPlus)  # any VoxelReconstructionModule subclass
+    assert isinstance(cli.datamodule, VTRDataModule)
+    assert cli.trainer.reload_dataloaders_every_n_epochs == 1
+    # The model's own optimizer and scheduler are kept, not replaced by LightningCLI's.
+    assert cli.model.configure_optimizers.__func__ is Pix2VoxPlusPlus.configure_optimizers
+
+
+def test_given_trainer_defaults_merge_over_the_package_defaults(tmp_path):
+    cli = VTRLightningCLI(
+        run=False,
+        trainer_defaults={"max_epochs": 3},
+        args=["--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus", "--trainer.logger=false"],
+    )
+    assert cli.trainer.max_epochs == 3 and cli.trainer.reload_dataloaders_every_n_epochs == 1

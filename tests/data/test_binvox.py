@@ -104,14 +104,18 @@ def test_bad_files_raise_naming_the_file(tmp_path):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(ValueError, match=name):
             read_binvox(tmp_path / name)
-    with pytest.raises(ValueError, match="up_axis"):
+    with pytest.raises(ValueError, match=r"`up_axis` must be one of 'y', 'z', got 'x'"):
         read_binvox(tmp_path / "short.binvox", up_axis="x")
 
 
 def test_write_is_atomic_and_validates(tmp_path):
     with pytest.raises(ValueError, match="voxels"):
         write_binvox(tmp_path / "a.binvox", np.zeros((4, 4)))
-    with pytest.raises(ValueError, match="scale"):
+    with pytest.raises(ValueError, match=r"`scale` must be a number > 0, got 0.0"):
         write_binvox(tmp_path / "a.binvox", np.zeros((2, 2, 2)), scale=0)
+    with pytest.raises(TypeError, match=r"`translate` must be three numbers, got 'abc'"):
+        write_binvox(tmp_path / "a.binvox", np.zeros((2, 2, 2)), translate="abc")
+    with pytest.raises(ValueError, match=r"`up_axis` must be one of 'y', 'z', got 'x'"):
+        write_binvox(tmp_path / "a.binvox", np.zeros((2, 2, 2)), up_axis="x")
     write_binvox(tmp_path / "sub" / "a.binvox", np.ones((2, 2, 2)))
     assert [p.name for p in (tmp_path / "sub").iterdir()] == ["a.binvox"]  # no temporary left behind

@@ -210,6 +210,17 @@ def test_invalid_arguments(tmp_path):
         build_dataset(tmp_path, categories=["spaceship"])
     with pytest.raises(ValueError, match="source"):
         build_dataset(tmp_path, source=tmp_path / "missing")
+    with pytest.raises(TypeError, match=r"`image_size` must be an int, got float 64.0"):
+        build_dataset(tmp_path, image_size=64.0)
+    with pytest.raises(ValueError, match=r"`views_per_set` must be an int in \[1, 100\], got 101"):
+        build_dataset(tmp_path, views_per_set=101)
+    with pytest.raises(ValueError, match=r"`source_layout` must be one of 'auto', 'shapenet_v1', 'shapenet_v2', 'generic'"):
+        build_dataset(tmp_path, source_layout="flat")
+    with pytest.raises(ValueError, match=r"`up_axis` must be one of None, 'y', 'z', got 'x'"):
+        build_dataset(tmp_path, up_axis="x")
+    with pytest.raises(TypeError, match=r"`shard` must be a pair \(i, n\), got 3"):
+        build_dataset(tmp_path, shard=3)
+    assert not any(tmp_path.iterdir())  # arguments are checked before anything is written
 
 
 def test_ensure_embedded_dataset_builds_once(tmp_path, monkeypatch):

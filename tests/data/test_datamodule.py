@@ -40,7 +40,7 @@ def test_splits_follow_7_1_2_per_category(tiny_dataset):
 
 
 def test_batches_have_the_protocol_shapes_and_normalisation(tiny_dataset):
-    dm = _dm(tiny_dataset, n_views=3, image_size=32, batch_size=5)
+    dm = _dm(tiny_dataset, num_views=3, image_size=32, batch_size=5)
     batch = next(iter(dm.train_dataloader()))
     assert batch["images"].shape == (5, 3, 3, 32, 32)
     assert batch["voxels"].shape == (5, 32, 32, 32)
@@ -129,8 +129,16 @@ def test_max_generated_keeps_the_newest(tiny_dataset, tmp_path):
 
 
 def test_bad_arguments_are_named(tiny_dataset):
-    with pytest.raises(ValueError, match="n_views"):
-        VTRDataModule(str(tiny_dataset), n_views=0)
+    with pytest.raises(ValueError, match=r"`num_views` must be an int >= 1, got 0"):
+        VTRDataModule(str(tiny_dataset), num_views=0)
+    with pytest.raises(TypeError, match=r"`batch_size` must be an int, got float 4.0"):
+        VTRDataModule(str(tiny_dataset), batch_size=4.0)
+    with pytest.raises(ValueError, match=r"`max_generated` must be an int >= 0, got -1"):
+        VTRDataModule(str(tiny_dataset), max_generated=-1)
+    with pytest.raises(ValueError, match="`shapenet_rendering` must be None when `root`"):
+        VTRDataModule(str(tiny_dataset), shapenet_rendering={})
+    with pytest.raises(ValueError, match=r"`shapenet_rendering` must have the keys.*missing \['split_file', 'voxel_root'\]"):
+        VTRDataModule(shapenet_rendering={"rendering_root": "r"})
     with pytest.raises(ValueError, match="categories"):
         _dm(tiny_dataset, categories=["spaceship"])
     dm = _dm(tiny_dataset)
@@ -140,6 +148,17 @@ def test_bad_arguments_are_named(tiny_dataset):
         s = _sample(dm)
         s.images = s.images.astype(np.float32)
         dm.add_samples([s])
+
+
+def test_n_views_is_a_deprecated_alias_of_num_views(tiny_dataset):
+    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
+        dm = _dm(tiny_dataset, n_views=2, batch_size=3)
+    assert dm.num_views == 2
+    # The checkpointed hyperparameters hold the new name only, with the resolved value.
+    assert dm.hparams["num_views"] == 2 and "n_views" not in dm.hparams
+    assert next(iter(dm.val_dataloader()))["images"].shape == (3, 2, 3, 32, 32)
+    with pytest.warns(DeprecationWarning, match="`VTRDataModule.n_views` was renamed `num_views`"):
+        assert dm.n_views == 2
 
 
 def _free_port() -> int:

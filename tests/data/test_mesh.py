@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from lightning_vtr.data.mesh import MeshError, convert_up_axis, load_mesh, normalize_mesh, save_mesh
+from lightning_vtr.data.mesh import MESH_EXTENSIONS, MeshError, convert_up_axis, load_mesh, normalize_mesh, save_mesh
 
 
 def _box(extents, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
@@ -45,7 +45,7 @@ def test_convert_up_axis_rotates_y_to_z_keeping_handedness():
     # A proper rotation keeps the signed volume (a mirror would negate it) and leaves the input alone.
     assert out.volume == pytest.approx(tet.volume) and tet.vertices[2].tolist() == [0, 1, 0]
     np.testing.assert_allclose(convert_up_axis(tet, "z").vertices, tet.vertices)
-    with pytest.raises(ValueError, match="up_axis"):
+    with pytest.raises(ValueError, match=r"`up_axis` must be one of 'y', 'z', got 'x'"):
         convert_up_axis(tet, "x")
 
 
@@ -62,8 +62,10 @@ def test_normalize_mesh_centres_the_bounding_box():
     # Box [1,3]x[1,2]x[1,5]: centre (2, 1.5, 3), longest side 4 -> scale 1/4.
     np.testing.assert_allclose(out.vertices[1], [(3 - 2) / 4, (1 - 1.5) / 4, (1 - 3) / 4])
     np.testing.assert_allclose(out.bounds, [[-0.25, -0.125, -0.5], [0.25, 0.125, 0.5]])
-    with pytest.raises(ValueError, match="longest_side"):
+    with pytest.raises(ValueError, match=r"`longest_side` must be a number > 0, got 0.0"):
         normalize_mesh(mesh, 0.0)
+    with pytest.raises(TypeError, match=r"`longest_side` must be a number, got str '1'"):
+        normalize_mesh(mesh, "1")
 
 
 def test_colours_survive_loading(tmp_path):
@@ -102,5 +104,9 @@ def test_save_mesh_is_atomic_and_round_trips(tmp_path):
     save_mesh(mesh, tmp_path / "out" / "mesh.ply")
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["mesh.ply"]
     np.testing.assert_allclose(load_mesh(tmp_path / "out" / "mesh.ply", normalize=False).bounds, mesh.bounds, atol=1e-6)
-    with pytest.raises(ValueError, match="extension"):
+    with pytest.raises(ValueError, match=r"`path` must have a mesh extension \(.obj, .off, .ply, .stl, .glb, .gltf\)"):
         save_mesh(mesh, tmp_path / "mesh.txt")
+
+
+def test_mesh_extensions_are_the_loadable_formats():
+    assert MESH_EXTENSIONS == (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")

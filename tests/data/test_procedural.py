@@ -18,10 +18,13 @@ def test_at_least_eight_categories_including_the_named_ones():
 def test_object_id_format_and_errors():
     assert object_id("chair", 7) == "chair_0007"
     assert object_id("airplane", 1234) == "airplane_1234"
-    with pytest.raises(ValueError, match="category"):
+    with pytest.raises(ValueError, match=r"`category` must be one of 'airplane', .*, got 'spaceship'"):
         make_object("spaceship", 0)
-    with pytest.raises(ValueError, match="index"):
+    with pytest.raises(ValueError, match=r"`index` must be an int >= 0, got -1"):
         object_id("chair", -1)
+    with pytest.raises(TypeError, match=r"`index` must be an int, got bool True"):
+        object_id("chair", True)
+    assert object_id("chair", np.int64(3)) == "chair_0003"
 
 
 @pytest.mark.parametrize("category", CATEGORIES)

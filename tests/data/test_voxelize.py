@@ -88,9 +88,11 @@ def test_open_shape_stays_open_and_thin_parts_survive():
 def test_geometry_outside_the_cube_is_clipped_and_errors():
     vox = voxelize(_box((2.0, 0.1, 0.1)), 8)
     assert vox[:, 3:5, 3:5].all() and vox.sum() == 8 * 4
-    with pytest.raises(ValueError, match="resolution"):
+    with pytest.raises(ValueError, match=r"`resolution` must be an int >= 1, got 0"):
         voxelize(_box((0.5, 0.5, 0.5)), 0)
+    with pytest.raises(TypeError, match=r"`resolution` must be an int, got float 8.0"):
+        voxelize(_box((0.5, 0.5, 0.5)), 8.0)
     with pytest.raises(ValueError, match="no triangles"):
         voxelize(trimesh.Trimesh(), 8)
-    with pytest.raises(TypeError, match="trimesh"):
+    with pytest.raises(TypeError, match=r"`mesh` must be a trimesh.Trimesh, got ndarray"):
         surface_voxels(np.zeros((3, 3)), 8)

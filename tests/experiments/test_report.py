@@ -1,19 +1,26 @@
-"""`lightning-vtr report` / run_report: tables equal the runs' results, files, resume, multi-seed spread, CLI."""
+"""run_report: tables equal the runs' results, files, resume, multi-seed spread; ReportConfig and its runs."""
 
 from __future__ import annotations
 
 import csv
 import json
-import math
 
 import lightning as L
 import pytest
 
 import lightning_vtr.experiments.training as experiment
-from lightning_vtr import cli
-from lightning_vtr.experiments.report import ABLATIONS, STRATEGIES, ReportConfig, _plan, _table, run_report
-
-VIEW_SETS = ("aligned", "hemispherical", "spherical")
+from lightning_vtr.experiments.report import (
+    STRATEGIES,
+    STRATEGY_TITLES,
+    ReportConfig,
+    _plan,
+    _table,
+    default_experiment,
+    run_report,
+)
+from lightning_vtr.experiments.training import ExperimentConfig
+from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.selection import SELECTORS
 
 
 def _parse_tables(markdown: str) -> dict[str, tuple[list[str], dict[str, list[str]]]]:
@@ -37,8 +44,8 @@ def _pct(value: float) -> str:
 
 @pytest.fixture
 def counters(monkeypatch):
-    """Counts Trainer.fit / Trainer.test calls and records run_strategy's arguments."""
-    counts = {"fit": 0, "test": 0, "runs": []}
+    """Counts Trainer.fit / Trainer.test calls and records run_strategy's arguments and configurations."""
+    counts = {"fit": 0, "test": 0, "runs": [], "configs": []}
     fit, test, run_strategy = L.Trainer.fit, L.Trainer.test, experiment.run_strategy
 
     def counting_fit(self, *args, **kwargs):
@@ -51,6 +58,7 @@ def counters(monkeypatch):
 
     def recording_run_strategy(name, config, pretrained, **kwargs):
         counts["runs"].append((name, kwargs["run_name"], kwargs["selector_kwargs"], kwargs["callback_kwargs"]))
+        counts["configs"].append(config)
         return run_strategy(name, config, pretrained, **kwargs)
 
     monkeypatch.setattr(L.Trainer, "fit", counting_fit)
@@ -60,21 +68,24 @@ def counters(monkeypatch):
 
 
 def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_dataset, tmp_path, counters):
-    config = ReportConfig(
+    experiment_config = default_experiment(
         data=str(tiny_dataset),
         out=str(tmp_path / "report"),
-        seeds=[0],
         pretrain_epochs=1,
         finetune_epochs=2,  # epoch 0 ends with one search, so the callback really runs
-        strategies=["none", "error_guided"],
-        ablations=["k", "single_view"],
-        k_values=[15, 30],
         fraction=0.15,
         batch_size=4,
         accelerator="cpu",
         trainer_kwargs={
             "limit_train_batches": 1, "limit_val_batches": 1, "limit_test_batches": 1, "enable_progress_bar": False,
         },
+    )
+    config = ReportConfig(
+        experiment_config,
+        seeds=[0],
+        strategies=["none", "error_guided"],
+        ablations=["k", "single_view"],
+        k_values=[15, 30],
         callback_kwargs={"progress_bar": False},
     )
     result = run_report(config)
@@ -90,6 +101,9 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         ("error_guided", "error_guided_k15", {"k": 15}),
     ]
     assert all(r[3] == {"progress_bar": False} for r in counters["runs"])
+    # Every run gets the report's experiment, with the seed's own `out`.
+    expected = ExperimentConfig(**{**vars(experiment_config), "seed": 0, "out": str(tmp_path / "report" / "seed_0")})
+    assert all(c == expected for c in counters["configs"])
     searched = json.loads((seed_dir / "error_guided_k15" / "results.json").read_text())
     assert searched["generated_samples"] == round(0.15 * 21)
 
@@ -106,7 +120,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         name: json.loads((seed_dir / name / "results.json").read_text())
         for name in ("none", "error_guided", "error_guided_k15", "single_view_none", "single_view_error_guided")
     }
-    assert runs["single_view_none"]["n_views"] == 1 and runs["single_view_none"]["source_run"] == "none"
+    assert runs["single_view_none"]["num_views"] == 1 and runs["single_view_none"]["source_run"] == "none"
 
     # Markdown: Table 1 layout, values = results.json in percent.
     markdown = (out / "report.md").read_text()
@@ -167,13 +181,33 @@ def test_several_seeds_print_mean_and_sample_std():
     assert rows["None-VTR"] == ["70.00", "-", "-"]
 
 
+def test_strategies_are_none_then_the_selector_registry_each_with_a_row_title():
+    assert STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "error_guided")
+    assert STRATEGIES == ("none", *SELECTORS) and STRATEGIES is experiment.STRATEGIES
+    assert list(STRATEGY_TITLES) == list(STRATEGIES)
+
+
+def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_directory():
+    exp = default_experiment(data="/data/vtr", out="runs/x", preset="paper", fraction=0.1, model_kwargs={"lr": 1.0})
+    config = ReportConfig(exp, seeds=[3, 7])
+    for seed in (3, 7):
+        seed_config = config.seed_config(seed)
+        assert isinstance(seed_config, ExperimentConfig)
+        assert vars(seed_config) == {**vars(exp), "seed": seed, "out": f"runs/x/seed_{seed}"}
+    assert config.experiment is exp and exp.seed == 0 and exp.out == "runs/x"  # the given one is not changed
+    # The report's defaults: its own budget and directory over ExperimentConfig's.
+    default = ReportConfig().experiment
+    assert (default.out, default.pretrain_epochs, default.finetune_epochs, default.batch_size) == ("runs/report", 30, 10, 8)
+    assert ReportConfig().experiment is not ReportConfig().experiment
+
+
 def test_plan_adds_the_runs_the_ablations_need():
     names = [r.name for r in _plan(ReportConfig(strategies=["viat"]))]
     assert names == [
         "none", "viat", "error_guided", "error_guided_k15", "error_guided_k60", "error_guided_k90",
         "error_guided_no_pool", "single_view_none", "single_view_error_guided",
     ]
-    no_pool = [r for r in _plan(ReportConfig()) if r.name == "error_guided_no_pool"][0]
+    no_pool = next(r for r in _plan(ReportConfig()) if r.name == "error_guided_no_pool")
     assert no_pool.callback_kwargs == {"use_pool": False}
     assert [r.name for r in _plan(ReportConfig(strategies=["mvtn", "random"], ablations=[]))] == ["random", "mvtn"]
     kwargs = {r.name: r.selector_kwargs for r in _plan(ReportConfig(selector_kwargs={"error_guided": {"mode": "soft"}}))}
@@ -187,8 +221,10 @@ def test_plan_adds_the_runs_the_ablations_need():
         ({"ablations": ["dropout"]}, "ablations"),
         ({"k_values": [15, 25]}, "k_values"),
         ({"seeds": []}, "seeds"),
-        ({"finetune_epochs": 0}, "finetune_epochs"),
-        ({"finetune_lr": "linear"}, "finetune_lr"),
+        ({"seeds": [1, 1]}, "seeds"),
+        ({"selector_kwargs": {"ours": {}}}, "selector_kwargs"),
+        ({"experiment": ExperimentConfig(finetune_epochs=0)}, "finetune_epochs"),
+        ({"experiment": ExperimentConfig(pretrain_epochs=0)}, "pretrain_epochs"),
     ],
 )
 def test_config_rejects_bad_values(kwargs, match):
@@ -196,44 +232,11 @@ def test_config_rejects_bad_values(kwargs, match):
         ReportConfig(**kwargs)
 
 
-def test_cli_builds_the_report_config(monkeypatch):
-    seen = {}
-
-    def fake_run_report(config):
-        seen["config"] = config
-        return {"markdown": "table", "paths": {}}
-
-    monkeypatch.setattr("lightning_vtr.experiments.report.run_report", fake_run_report)
-    argv = ["report", "--seeds", "0", "1", "--strategies", "none,viat", "--no-ablations", "--fraction", "0.1",
-            "--pretrain-epochs", "3", "--out", "somewhere", "--finetune-lr", "constant"]
-    assert cli.main(argv) == 0
-    config = seen["config"]
-    assert (config.seeds, config.strategies, config.ablations) == ([0, 1], ["none", "viat"], [])
-    assert (config.fraction, config.pretrain_epochs, config.finetune_epochs, config.out) == (0.1, 3, 10, "somewhere")
-    assert config.finetune_lr == "constant"
-    assert config.command == "lightning-vtr " + " ".join(argv)
-    assert cli.main(["report"]) == 0
-    assert seen["config"].finetune_lr == "cosine"
-    assert seen["config"].strategies == list(STRATEGIES) and seen["config"].ablations == list(ABLATIONS)
-    assert not math.isnan(seen["config"].fraction)
-
-
-def test_make_strategy_passes_selector_and_callback_arguments():
-    from lightning_vtr.selection import ErrorGuidedSelector, VIATSelector
-
-    config = experiment.ExperimentConfig(fraction=0.2, seed=3)
-    callback = experiment.make_strategy(
-        "error_guided", config, selector_kwargs={"k": 15}, callback_kwargs={"use_pool": False, "fraction": 0.5}
-    )
-    assert isinstance(callback.selector, ErrorGuidedSelector)
-    assert callback.selector.k == 15 and callback.selector.sigma == 2.5  # K / 6 degrees
-    assert callback.pool is None  # the pool ablation
-    assert callback.fraction == 0.5 and callback.seed == 3  # callback_kwargs override the config
-    viat = experiment.make_strategy("viat", config, selector_kwargs={"population": 4, "iterations": 2})
-    assert isinstance(viat.selector, VIATSelector) and (viat.selector.population, viat.selector.iterations) == (4, 2)
-    assert viat.fraction == 0.2 and experiment.make_strategy("none", config) is None
-    with pytest.raises(ValueError, match="Unknown view strategy 'ours'"):
-        experiment.make_strategy("ours", config)
+def test_config_rejects_wrong_types():
+    with pytest.raises(TypeError, match="`experiment` must be an ExperimentConfig"):
+        ReportConfig({"model": "pix2vox"})
+    with pytest.raises(TypeError, match="`seeds` must be an int"):
+        ReportConfig(seeds=["0"])
 
 
 def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatch):
@@ -255,7 +258,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     monkeypatch.setattr(experiment, "pretrain", lambda config: tmp_path / "pretrained.ckpt")
     monkeypatch.setattr(experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed))
     monkeypatch.setattr(report, "_single_view", lambda run, exp, source: payload(run.name, exp.seed))
-    result = run_report(ReportConfig(out=str(tmp_path / "r"), seeds=[0, 2]))
+    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=[0, 2]))
 
     def cell(run: str, view_set: str, metric: str) -> str:
         a, b = (100 * value(run, s, view_set, metric) for s in (0, 2))

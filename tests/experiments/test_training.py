@@ -1,4 +1,4 @@
-"""lightning_vtr.experiments.training: the fine-tuning learning-rate schedule, fresh and resumed."""
+"""lightning_vtr.experiments.training: the registries, the fine-tuning learning-rate schedule, the result cache."""
 
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ class _LinearModel(L.LightningModule):
         return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 2)), batch_size=2)
 
     def configure_optimizers(self):
-        optimizer = torch.optim.Adam([{"params": self.a.parameters(), "lr": 0.1}, {"params": self.b.parameters(), "lr": 0.01}])
+        groups = [{"params": self.a.parameters(), "lr": 0.1}, {"params": self.b.parameters(), "lr": 0.01}]
+        optimizer = torch.optim.Adam(groups)
         return [optimizer], [torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=[1], gamma=0.5)]
 
 
@@ -112,3 +113,69 @@ def test_run_strategy_refuses_a_cached_result_of_another_configuration(tmp_path)
     assert run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, devices=2), missing) == payload
     with pytest.raises(ValueError, match=r"results.json was written with another configuration .*'finetune_lr'"):
         run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, finetune_lr="constant"), missing)
+
+
+def test_models_registry_builds_each_model_class_with_its_preset():
+    from lightning_vtr.models.lrgt import LRGT
+    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+    assert experiment.MODELS == {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
+    for name, cls in experiment.MODELS.items():
+        model = experiment.make_model(ExperimentConfig(model=name, preset="tiny"))
+        assert type(model) is cls
+    with pytest.raises(ValueError, match="`model` must be one of 'pix2vox', 'lrgt', got 'unet'"):
+        experiment.make_model(ExperimentConfig(model="unet"))
+    with pytest.warns(DeprecationWarning, match="MODEL_CLASSES"):
+        assert experiment.MODEL_CLASSES == ("pix2vox", "lrgt")
+
+
+def test_make_strategy_builds_every_registered_selector():
+    from lightning_vtr.callback import ErrorGuidedViewAugmentation
+    from lightning_vtr.selection import SELECTORS
+
+    config = ExperimentConfig(fraction=0.2, seed=3)
+    assert experiment.STRATEGIES == ("none", *SELECTORS)
+    assert experiment.make_strategy("none", config) is None
+    for name, cls in SELECTORS.items():
+        callback = experiment.make_strategy(name, config)
+        assert isinstance(callback, ErrorGuidedViewAugmentation) and type(callback.selector) is cls, name
+        assert (callback.fraction, callback.seed) == (0.2, 3)
+    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*, got 'ours'"):
+        experiment.make_strategy("ours", config)
+
+
+def test_make_strategy_passes_selector_and_callback_arguments():
+    from lightning_vtr.selection import ErrorGuidedSelector, VIATSelector
+
+    config = ExperimentConfig(fraction=0.2, seed=3)
+    callback = experiment.make_strategy(
+        "error_guided", config, selector_kwargs={"k": 15}, callback_kwargs={"use_pool": False, "fraction": 0.5}
+    )
+    assert isinstance(callback.selector, ErrorGuidedSelector)
+    assert callback.selector.k == 15 and callback.selector.sigma == 2.5  # K / 6 degrees
+    assert callback.pool is None  # the pool ablation
+    assert callback.fraction == 0.5 and callback.seed == 3  # callback_kwargs override the config
+    viat = experiment.make_strategy("viat", config, selector_kwargs={"population": 4, "iterations": 2})
+    assert isinstance(viat.selector, VIATSelector) and (viat.selector.population, viat.selector.iterations) == (4, 2)
+    assert viat.fraction == 0.2
+
+
+def test_make_datamodule_takes_the_model_view_count_or_num_views(tmp_path):
+    model = experiment.make_model(ExperimentConfig())
+    config = ExperimentConfig(batch_size=4, seed=5)
+    dm = experiment.make_datamodule(config, model)
+    assert (dm.num_views, dm.batch_size, dm.seed) == (model.num_views, 4, 5)
+    assert experiment.make_datamodule(config, model, num_views=1).num_views == 1
+    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
+        assert experiment.make_datamodule(config, model, n_views=2).num_views == 2
+
+
+def test_config_reads_a_device_count_from_a_command_line():
+    assert ExperimentConfig(devices="2").devices == 2
+    assert ExperimentConfig(devices="auto").devices == "auto"
+    assert ExperimentConfig(devices="0,1").devices == "0,1"
+
+
+def test_cosine_fine_tuning_rejects_a_non_integer_epoch_count():
+    with pytest.raises(TypeError, match="`epochs` must be an int, got float 2.5"):
+        CosineFineTuning(2.5)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -13,6 +14,7 @@ from lightning_vtr.models.lrgt import (
     LRGT_PRESETS,
     LongRangeGroupingAttention,
     LRGTNetwork,
+    LRGTSpec,
     SimilarTokenMerger,
     dice_loss,
 )
@@ -186,7 +188,7 @@ def test_dice_loss_hand_computed():
 
 def test_network_shapes_any_number_of_views_and_view_order_invariance():
     torch.manual_seed(0)
-    net = LRGTNetwork(**LRGT_PRESETS["tiny"]).eval()
+    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"]).eval()
     for block in net.grouping_blocks:
         torch.nn.init.normal_(net.encoder.blocks[block].attn.signature.weight, std=0.1)
     images = torch.randn(2, 3, 3, 64, 64)
@@ -204,7 +206,7 @@ def test_network_shapes_any_number_of_views_and_view_order_invariance():
 
 def test_paper_preset_parameter_count_and_output_shape():
     with torch.device("meta"):
-        net = LRGTNetwork(**LRGT_PRESETS["paper"])
+        net = LRGTNetwork.from_spec(LRGT_PRESETS["paper"])
         out = net(torch.empty(2, 3, 3, 224, 224))
     count = sum(p.numel() for p in net.parameters())
     assert abs(count - 130e6) / 130e6 < 0.03, count
@@ -214,13 +216,70 @@ def test_paper_preset_parameter_count_and_output_shape():
 
 def test_pretrained_encoder_loads_into_grouping_blocks():
     preset = LRGT_PRESETS["tiny"]
-    net = LRGTNetwork(**preset)
+    net = LRGTNetwork.from_spec(preset)
     own = {k: v for k, v in net.encoder.state_dict().items() if ".signature." not in k}
     state = {k: torch.randn_like(v) for k, v in own.items()} | {"head.weight": torch.zeros(3, 64)}
     net.load_pretrained_encoder(state)
-    block = preset["grouping_blocks"][0]
+    block = preset.grouping_blocks[0]
     assert torch.equal(net.encoder.blocks[block].attn.qkv.weight, state[f"blocks.{block}.attn.qkv.weight"])
     assert not net.encoder.blocks[block].attn.signature.weight.any()
+
+
+def test_preset_specs_hold_the_published_and_tiny_architectures():
+    paper, tiny = LRGT_PRESETS["paper"], LRGT_PRESETS["tiny"]
+    assert set(LRGT_PRESETS) == {"paper", "tiny"}
+    assert (paper.image_size, paper.patch_size, paper.embed_dim, paper.depth, paper.num_heads) == (224, 16, 768, 12, 12)
+    assert paper.grouping_blocks == (5, 7, 9, 11) and paper.group_stride == 7 and paper.grid_size == 14
+    assert (paper.num_merged_tokens, paper.merger_k, paper.decoder_depth, paper.decoder_heads) == (196, 15, 3, 12)
+    assert paper.query_grid == 4 and paper.upsample_channels == (256, 64, 16) and paper.voxel_resolution == 32
+    assert (tiny.image_size, tiny.patch_size, tiny.embed_dim, tiny.depth, tiny.num_heads) == (64, 8, 64, 4, 4)
+    assert tiny.grouping_blocks == (1, 3) and tiny.group_stride == 4 and tiny.grid_size == 8
+    assert (tiny.num_merged_tokens, tiny.merger_k, tiny.decoder_depth, tiny.decoder_heads) == (64, 5, 1, 4)
+    assert tiny.query_grid == 4 and tiny.upsample_channels == (32, 16, 8) and tiny.voxel_resolution == 32
+
+
+def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
+    tiny = LRGT_PRESETS["tiny"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        tiny.depth = 8
+    fields = dataclasses.asdict(tiny)
+    from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [32, 16, 8]})
+    assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (32, 16, 8)
+    assert from_lists == tiny and hash(from_lists) == hash(tiny)
+    assert LRGTNetwork(**fields).spec == tiny
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "match"),
+    [
+        ({"grouping_blocks": (1, 4)}, ValueError, r"`grouping_blocks` must be 0-based block indices in \[0, 4\), got \[1, 4\]"),
+        ({"grouping_blocks": 3}, TypeError, r"`grouping_blocks` must be a sequence of ints, got int 3"),
+        ({"depth": "4"}, TypeError, r"`depth` must be an int, got str '4'"),
+        ({"embed_dim": 0}, ValueError, r"`embed_dim` must be an int >= 1, got 0"),
+        ({"upsample_channels": (32, 0)}, ValueError, r"`upsample_channels\[1\]` must be an int >= 1, got 0"),
+    ],
+)
+def test_spec_rejects_bad_fields(change, error, match):
+    with pytest.raises(error, match=match):
+        dataclasses.replace(LRGT_PRESETS["tiny"], **change)
+
+
+def test_model_and_network_are_built_from_the_spec():
+    tiny = LRGT_PRESETS["tiny"]
+    model = LRGT(preset="tiny")
+    assert model.spec == tiny and model.network.spec == tiny
+    assert LRGTNetwork.from_spec(tiny).spec == tiny
+    small = LRGT(preset="tiny", image_size=32, patch_size=4, upsample_channels=[16, 8])
+    assert small.spec == dataclasses.replace(tiny, image_size=32, patch_size=4, upsample_channels=(16, 8))
+    assert (small.spec.grid_size, small.spec.voxel_resolution, small.voxel_resolution) == (8, 16, 16)
+    # The hyperparameters (what checkpoints and loggers see) keep their form: lists for the sequences.
+    assert small.hparams.upsample_channels == [16, 8] and small.hparams.grouping_blocks == [1, 3]
+    with pytest.raises(ValueError, match=r"`grouping_blocks` must be 0-based block indices in \[0, 4\)"):
+        LRGT(preset="tiny", grouping_blocks=[7])
+    with pytest.raises(ValueError, match=r"`lr` must be a number > 0, got 0.0"):
+        LRGT(preset="tiny", lr=0.0)
+    with pytest.raises(TypeError, match=r"`spec` must be an LRGTSpec, got dict"):
+        LRGTNetwork.from_spec(dataclasses.asdict(tiny))
 
 
 def _shapes(r: int) -> torch.Tensor:

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader
 
 from lightning_vtr.metrics import voxel_iou
-from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus
 from lightning_vtr.protocol import ReconstructionModel
 
 R = 32
@@ -68,10 +68,15 @@ def test_bad_inputs(tiny, images, match):
 
 
 def test_bad_arguments():
-    with pytest.raises(ValueError, match=r"`preset` must be one of \['paper', 'tiny'\], got 'huge'"):
+    with pytest.raises(ValueError, match=r"`preset` must be one of 'paper', 'tiny', got 'huge'"):
         Pix2VoxPlusPlus(preset="huge")
-    with pytest.raises(ValueError, match="backbone_weights.*'tiny'"):
+    with pytest.raises(ValueError, match="`backbone_weights` must be None for preset 'tiny'"):
         Pix2VoxPlusPlus(preset="tiny", backbone_weights="resnet50.pth")
+
+
+def test_model_keeps_its_preset_spec(tiny):
+    assert tiny.spec is PIX2VOX_PRESETS["tiny"]
+    assert (tiny.spec.image_size, tiny.spec.backbone, tiny.spec.merger_stride, tiny.spec.feature_size) == (64, "small", 2, 4)
 
 
 def test_checkpoint_from_another_preset_errors(tiny, tmp_path):

@@ -80,7 +80,7 @@ def test_empty_batch_returns_empty_selection():
 
 
 def test_validation_messages_name_argument_and_value():
-    with pytest.raises(ValueError, match="K=25"):
+    with pytest.raises(ValueError, match=r"`k` must be a bin interval K in degrees that divides 180, got 25"):
         ErrorGuidedSelector(k=25)
     with pytest.raises(ValueError, match=r"`num_views`.*\[1, 8\].*9"):
         ErrorGuidedSelector(k=90, num_views=9)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from helpers import one_thread
 
 from lightning_vtr.geometry import angular_distance, camera_center, voxel_centers, wrap_yaw
 from lightning_vtr.selection.base import ViewSelector
@@ -11,15 +12,8 @@ from lightning_vtr.selection.differentiable_projection import soft_error_project
 from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.projection import error_projection, error_volume
 
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
+_one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 
 # ------------------------------------------------------------------------------------- projection
 def _first_hit_along(volume: torch.Tensor, dim: int, from_high: bool) -> torch.Tensor:

@@ -9,10 +9,14 @@ import pytest
 import torch
 
 from lightning_vtr.geometry import candidate_viewpoints, orthographic_pixel_coords, voxel_centers
+from lightning_vtr.selection.base import check_categories
 from lightning_vtr.selection.projection import (
+    check_volume_pair,
+    check_volumes,
     error_projection,
     error_volume,
     nearest_bins,
+    projection_scores,
     select_views,
     top_bins,
     view_scores,
@@ -133,7 +137,7 @@ def test_empty_batch_and_bad_inputs():
     assert error_projection(torch.zeros(0, 4, 4, 4), candidate_viewpoints(90)).shape == (0, 8, 4, 4)
     with pytest.raises(ValueError, match=r"\(B, R, R, R\).*\(2, 4, 4, 5\)"):
         error_projection(torch.zeros(2, 4, 4, 5), candidate_viewpoints(90))
-    with pytest.raises(ValueError, match="R = 0"):
+    with pytest.raises(ValueError, match=r"`volumes` must be a non-empty grid \(R >= 1\), got shape \(1, 0, 0, 0\)"):
         error_projection(torch.zeros(1, 0, 0, 0), candidate_viewpoints(90))
     with pytest.raises(ValueError, match="V >= 1"):
         error_projection(torch.zeros(1, 4, 4, 4), torch.zeros(0, 2))
@@ -288,7 +292,7 @@ def test_select_views_deterministic_and_validated():
     a = select_views(scores, 30, 3, generator=torch.Generator().manual_seed(7))
     b = select_views(scores, 30, 3, generator=torch.Generator().manual_seed(7))
     assert torch.equal(a, b) and a.shape == (5, 3, 2)
-    with pytest.raises(ValueError, match="K=25"):
+    with pytest.raises(ValueError, match=r"`k` must be a bin interval K in degrees that divides 180, got 25"):
         select_views(scores, 25, 3)
     with pytest.raises(ValueError, match=r"\(B, 72\) for K=30, got \(5, 70\)"):
         select_views(scores[:, :70], 30, 3)
@@ -304,3 +308,54 @@ def test_select_views_centres_are_the_top_bins_with_zero_sigma():
     views = select_views(scores, 90, 3, sigma=0.0, generator=torch.Generator().manual_seed(0))
     cand = candidate_viewpoints(90)
     assert torch.equal(views[0], cand[[6, 1, 3]]) and torch.equal(views[1], cand[[0, 7, 5]])
+
+
+# ------------------------------------------------------------------------------------ public checks
+def test_check_volumes_and_pair_messages():
+    assert check_volumes(torch.ones(1, 2, 2, 2, dtype=torch.bool)).dtype == torch.get_default_dtype()
+    grid = torch.zeros(1, 2, 2, 2, dtype=torch.float64)
+    assert check_volumes(grid) is grid
+    with pytest.raises(TypeError, match="^`volumes` must be a torch.Tensor, got list$"):
+        check_volumes([[[[0.0]]]])
+    message = r"^`target` must be a floating-point \(or bool\) tensor, got dtype torch.int64$"
+    with pytest.raises(TypeError, match=message):
+        check_volume_pair(torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2, dtype=torch.long))
+    with pytest.raises(TypeError, match="^`predicted` and `target` must be torch.Tensors, got ndarray and Tensor$"):
+        check_volume_pair(np.zeros((1, 2, 2, 2)), torch.zeros(1, 2, 2, 2))
+
+
+def test_check_categories():
+    assert check_categories(["a", "b"], 2) == ["a", "b"]
+    with pytest.raises(ValueError, match="^`categories` must have one entry per object, got 1 for a batch of 2$"):
+        check_categories(["a"], 2)
+    with pytest.raises(TypeError, match="^`categories` must be a sequence of names, one per object, got str 'ab'$"):
+        check_categories("ab", 2)
+
+
+@pytest.mark.parametrize("reduction", ["sum", "mean"])
+def test_projection_scores_equal_the_scores_of_the_maps(reduction):
+    gen = torch.Generator().manual_seed(3)
+    soft = torch.rand(2, 6, 6, 6, generator=gen) * (torch.rand(2, 6, 6, 6, generator=gen) < 0.3)
+    binary = soft > 0
+    views = candidate_viewpoints(60)
+    for volumes, flag in ((soft, None), (binary, True), (binary.float(), None)):
+        expected = view_scores(error_projection(volumes.float(), views, eps=0.0), reduction=reduction)
+        got = projection_scores(volumes, views, reduction=reduction, binary=flag)
+        torch.testing.assert_close(got, expected)
+    assert projection_scores(torch.zeros(0, 6, 6, 6), views).shape == (0, 18)  # 3 pitch x 6 yaw bins
+    with pytest.raises(ValueError, match="^`reduction` must be one of 'sum', 'mean', got 'max'$"):
+        projection_scores(soft, views, reduction="max")
+    with pytest.raises(TypeError, match="^`volumes` must be a floating-point"):
+        projection_scores(soft.long(), views)
+
+
+def test_argument_types_raise_type_errors():
+    with pytest.raises(TypeError, match="^`image_size` must be an int, got float 4.0$"):
+        error_projection(torch.zeros(1, 4, 4, 4), candidate_viewpoints(90), image_size=4.0)
+    with pytest.raises(TypeError, match="^`n` must be an int, got bool True$"):
+        top_bins(torch.zeros(1, 4), True)
+    with pytest.raises(TypeError, match=r"^`scores` must be a torch.Tensor of shape \(B, V\), got list$"):
+        top_bins([[0.0, 1.0]], 1)
+    with pytest.raises(ValueError, match=r"^`threshold` must be a number in \[0, 1\], got 1.5$"):
+        error_volume(torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2), threshold=1.5)
+

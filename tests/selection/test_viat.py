@@ -7,20 +7,15 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import one_thread
 
 from lightning_vtr.geometry import angular_distance, wrap_yaw
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.selection.viat import VIATSelector, _nes_utilities
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
+_one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 
 ADVERSARIAL = torch.tensor([90.0, -45.0])  # where the fake model fails most (degrees)
 WIDTH = 40.0  # degrees

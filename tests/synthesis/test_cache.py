@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
-from lightning_vtr.synthesis.cache import CachedSynthesizer, SynthesisCache
+from lightning_vtr.synthesis.cache import CachedSynthesizer, SynthesisCache, viewpoint_key
 
 
 def _image(seed: int, size: int = 8) -> np.ndarray:
@@ -96,6 +96,42 @@ def test_leftover_tmp_file_is_not_a_hit(tmp_path):
 def test_put_rejects_bad_image(tmp_path):
     with pytest.raises(ValueError, match="image"):
         SynthesisCache(tmp_path).put("o", (0.0, 0.0), "k", np.zeros((8, 8, 3), np.uint8))
+
+
+def test_a_failed_put_keeps_the_previous_entry_and_leaves_no_temporary(tmp_path, monkeypatch):
+    cache = SynthesisCache(tmp_path)
+    path = cache.put("o", (5.0, 5.0), "k", _image(3))
+
+    def broken_save(self, fp, *args, **kwargs):
+        fp.write(b"\x89PNG half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr("PIL.Image.Image.save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        cache.put("o", (5.0, 5.0), "k", _image(4))
+    np.testing.assert_array_equal(cache.get("o", (5.0, 5.0), "k"), _image(3))
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
+
+
+def test_key_arguments_are_checked(tmp_path):
+    cache = SynthesisCache(tmp_path)
+    with pytest.raises(TypeError, match="^`object_id` must be a str, got int 7$"):
+        cache.path(7, (0.0, 0.0), "k")
+    with pytest.raises(ValueError, match="^`object_id` must be a non-empty string, got ''$"):
+        cache.path("", (0.0, 0.0), "k")
+    with pytest.raises(ValueError, match="^`config_key` must be a non-empty string, got ''$"):
+        cache.config_dir("")
+    with pytest.raises(TypeError, match="^`synthesizer` must be a Synthesizer, got str 'render'$"):
+        CachedSynthesizer("render", tmp_path)
+
+
+def test_viewpoint_key_normalises_and_rounds_to_millidegrees():
+    assert viewpoint_key((10.0, 20.0)) == "10000_20000"
+    assert viewpoint_key((180.0, 0.0)) == viewpoint_key((-180.0, -0.0)) == "-180000_0"
+    assert viewpoint_key(torch.tensor([370.0004, 95.0])) == "10000_90000"  # wrapped, clamped, rounded
+    assert viewpoint_key(np.array([-0.0004, -12.3456])) == "0_-12346"
+    with pytest.raises(ValueError, match=r"`viewpoint` must be one \(yaw, pitch\) pair in degrees, got shape \(2, 2\)"):
+        viewpoint_key(torch.zeros(2, 2))
 
 
 def test_cached_synthesizer_sends_only_misses(tmp_path):

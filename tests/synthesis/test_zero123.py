@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from helpers import one_thread
 
 from lightning_vtr.synthesis.base import SynthesisRequest
 from lightning_vtr.synthesis.pose import relative_pose
@@ -44,13 +45,8 @@ def _request(object_id="chair_0001", targets=((80.0, 0.0), (10.0, 40.0))) -> Syn
     )
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    # the tiny model's ops are too small to split; with busy cores, 2-thread OpenMP barriers made it ~20x slower
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# the tiny model's ops are too small to split; with busy cores, 2-thread OpenMP barriers made it ~20x slower
+_one_thread = pytest.fixture(scope="module", autouse=True, name="_one_thread")(one_thread)
 
 
 @pytest.fixture(scope="module")

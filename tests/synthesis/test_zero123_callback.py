@@ -6,41 +6,13 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
+from helpers import TinyUserModel
 from PIL import Image
-from torch import nn
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.synthesis.cache import CachedSynthesizer
 from lightning_vtr.synthesis.zero123 import Zero123Synthesizer
-
-
-class TinyModel(L.LightningModule):
-    """A minimal model satisfying the ReconstructionModel protocol."""
-
-    image_size = 32
-    num_views = 3
-    voxel_resolution = 32
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.encoder = nn.Sequential(nn.Conv2d(3, 8, 4, 4), nn.ReLU(), nn.Flatten(), nn.Linear(8 * 8 * 8, 64))
-        self.decoder = nn.Linear(64, 8**3)
-
-    def predict_voxels(self, images):
-        b, v = images.shape[:2]
-        feats = self.encoder(images.flatten(0, 1)).view(b, v, -1).mean(1)
-        return torch.sigmoid(F.interpolate(self.decoder(feats).view(b, 1, 8, 8, 8), size=32, mode="trilinear"))[:, 0]
-
-    def training_step(self, batch, batch_idx):
-        return F.binary_cross_entropy(self.predict_voxels(batch["images"]), batch["voxels"])
-
-    def validation_step(self, batch, batch_idx):
-        self.log("val_loss", F.binary_cross_entropy(self.predict_voxels(batch["images"]), batch["voxels"]))
-
-    def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=1e-3)
 
 
 @pytest.mark.slow
@@ -68,7 +40,7 @@ def test_one_epoch_of_zero123_augmentation(tiny_dataset, tiny_zero123, tmp_path)
             num_sanity_val_steps=0,
             reload_dataloaders_every_n_epochs=1,
         )
-        trainer.fit(TinyModel(), datamodule=dm)
+        trainer.fit(TinyUserModel(), datamodule=dm)
 
         samples = dm.generated_samples
         # 21 training objects, round(0.1 * 21) = 2 objects at the end of epoch 0

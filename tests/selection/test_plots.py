@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import torch
+from matplotlib.figure import Figure
 
 from lightning_vtr.selection import ViewpointPool, plot_error_projections, plot_pool_distribution
 
@@ -43,3 +47,22 @@ def test_pool_distribution_plot(tmp_path):
     assert [len(ax.collections[0].get_offsets()) for ax in visible] == [6, 3]
     empty = plot_pool_distribution(ViewpointPool(), tmp_path / "empty.png")
     assert empty["points"] == {} and empty["path"].read_bytes()[:8] == PNG_MAGIC
+
+
+def test_figures_bypass_pyplot(tmp_path):
+    import matplotlib.pyplot as plt
+
+    before = plt.get_fignums()
+    info = plot_pool_distribution(ViewpointPool(), tmp_path / "pool.png")
+    assert type(info["figure"]) is Figure
+    assert plt.get_fignums() == before  # never registered with pyplot: nothing to close, nothing leaks
+
+
+def test_importing_the_plugin_keeps_the_users_matplotlib_backend():
+    # (pyplot itself may get imported, by torchmetrics through Lightning; only a `matplotlib.use` would switch)
+    code = (
+        "import matplotlib; matplotlib.use('svg'); "
+        "import lightning_vtr.callback, lightning_vtr.selection; print(matplotlib.get_backend())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["svg"]

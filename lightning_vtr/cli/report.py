@@ -1,0 +1,91 @@
+"""``lightning-vtr report``: the paper's comparison and ablations on your data (Table 1, a CSV and a chart).
+
+The flags set the fields of :class:`~lightning_vtr.experiments.report.ReportConfig` and of its
+:class:`~lightning_vtr.experiments.training.ExperimentConfig`; their defaults are
+:func:`~lightning_vtr.experiments.report.default_experiment`'s.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from lightning_vtr.cli.arguments import comma_separated, positive_int
+
+if TYPE_CHECKING:
+    from lightning_vtr.experiments.report import ReportConfig
+
+__all__ = ["HELP", "add_arguments", "report_config", "run"]
+
+HELP = "run the paper's comparison and ablations; write Table 1, a CSV and a chart"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from lightning_vtr.experiments.report import STRATEGIES, default_experiment
+    from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS
+
+    defaults = default_experiment()
+    parser.description = (
+        "Pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on Aligned / "
+        "Hemispherical / Spherical and write report.md (the paper's Table 1 and ablations), results.csv and "
+        "report.png into --out. A killed report re-run skips every finished run."
+    )
+    add = parser.add_argument
+    add("--model", choices=list(MODELS), default=defaults.model,
+        help=f"reconstruction model (default {defaults.model})")
+    add("--preset", default=defaults.preset, help=f"model preset (default {defaults.preset})")
+    add("--data", default=defaults.data, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
+    add("--out", default=defaults.out, help=f"output directory (default {defaults.out})")
+    add("--seeds", type=int, nargs="+", default=[defaults.seed],
+        help=f"seeds; several give mean ± std (default {defaults.seed})")
+    add("--pretrain-epochs", type=positive_int, default=defaults.pretrain_epochs,
+        help=f"epochs on Aligned (default {defaults.pretrain_epochs})")
+    add("--finetune-epochs", type=positive_int, default=defaults.finetune_epochs,
+        help=f"fine-tuning epochs per strategy (default {defaults.finetune_epochs})")
+    add("--strategies", type=comma_separated(STRATEGIES), default=list(STRATEGIES),
+        help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)")
+    add("--no-ablations", action="store_true", help="skip the K, pool and single-view ablations")
+    add("--fraction", type=float, default=defaults.fraction,
+        help=f"share of training objects searched per epoch (default {defaults.fraction})")
+    add("--finetune-lr", choices=FINETUNE_LR_SCHEDULES, default=defaults.finetune_lr,
+        help="fine-tuning learning-rate schedule: annealed to 0 or the model's own "
+        f"(default {defaults.finetune_lr})")
+    add("--batch-size", type=positive_int, default=defaults.batch_size,
+        help=f"batch size (default {defaults.batch_size})")
+    add("--accelerator", default=defaults.accelerator, help=f"Trainer accelerator (default {defaults.accelerator})")
+    add("--devices", default=str(defaults.devices), help=f"Trainer devices (default {defaults.devices})")
+
+
+def report_config(args: argparse.Namespace, command: str | None = None) -> ReportConfig:
+    """The :class:`~lightning_vtr.experiments.report.ReportConfig` that parsed ``args`` describe."""
+    from lightning_vtr.experiments.report import ABLATIONS, ReportConfig, default_experiment
+
+    experiment = default_experiment(
+        model=args.model,
+        preset=args.preset,
+        data=args.data,
+        out=args.out,
+        pretrain_epochs=args.pretrain_epochs,
+        finetune_epochs=args.finetune_epochs,
+        fraction=args.fraction,
+        finetune_lr=args.finetune_lr,
+        batch_size=args.batch_size,
+        accelerator=args.accelerator,
+        devices=args.devices,
+    )
+    return ReportConfig(
+        experiment,
+        seeds=args.seeds,
+        strategies=args.strategies,
+        ablations=() if args.no_ablations else ABLATIONS,
+        command=command,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from lightning_vtr.experiments.report import run_report
+
+    result = run_report(report_config(args, command=args.command_line))
+    print(result["markdown"])
+    print("Wrote " + ", ".join(str(p) for p in result["paths"].values()))
+    return 0

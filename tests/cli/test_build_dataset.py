@@ -1,0 +1,74 @@
+"""``lightning-vtr build-dataset``: flags to build options (builds themselves: tests/data/test_builder.py)."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from lightning_vtr.cli import main
+from lightning_vtr.cli.build_dataset import add_arguments
+
+
+@pytest.fixture
+def builds(monkeypatch):
+    """The arguments of every build_dataset call `lightning-vtr build-dataset` makes (nothing is built)."""
+    calls = []
+
+    class Report:
+        finalized = False
+
+        def summary(self):
+            return "built nothing"
+
+    def fake_build_dataset(output, **kwargs):
+        calls.append((output, kwargs))
+        return Report()
+
+    monkeypatch.setattr("lightning_vtr.data.builder.build_dataset", fake_build_dataset)
+    return calls
+
+
+def test_layout_and_up_axis_choices_are_the_data_constants():
+    from lightning_vtr.data.builder import SOURCE_LAYOUTS
+    from lightning_vtr.data.format import UP_AXES
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    choices = {a.dest: a.choices for a in parser._actions}
+    assert tuple(choices["layout"]) == SOURCE_LAYOUTS and "generic" in choices["layout"]
+    assert tuple(choices["up_axis"]) == tuple(UP_AXES)
+
+
+def test_options_given_and_defaults(builds, tmp_path, capsys):
+    argv = ["build-dataset", str(tmp_path), "--categories", "chair,table", "--image-size", "32", "--shard", "1/4",
+            "--layout", "generic", "--up-axis", "y", "--split", "0.5,0.25,0.25", "--workers", "2", "--no-progress"]
+    assert main(argv) == 0
+    output, kwargs = builds[-1]
+    assert output == tmp_path
+    assert kwargs == {
+        "source": "procedural", "split": (0.5, 0.25, 0.25), "workers": 2, "shard": (1, 4), "progress": False,
+        "source_layout": "generic", "up_axis": "y", "categories": ["chair", "table"], "image_size": 32,
+    }
+    assert "Shard 1/4 done" in capsys.readouterr().out
+
+
+def test_embedded_takes_the_embedded_options_for_every_option_not_given(builds, monkeypatch, tmp_path):
+    from lightning_vtr.data.builder import EMBEDDED_DEFAULTS
+
+    monkeypatch.setenv("LIGHTNING_VTR_DATA", str(tmp_path))
+    assert main(["build-dataset", "--embedded", "--image-size", "32"]) == 0
+    output, kwargs = builds[-1]
+    assert output.parent == tmp_path and output.name.startswith("embedded-")
+    assert {k: kwargs[k] for k in EMBEDDED_DEFAULTS} == {**EMBEDDED_DEFAULTS, "image_size": 32}
+
+
+def test_errors_print_one_line(builds, capsys, tmp_path):
+    assert main(["build-dataset"]) == 2
+    assert "OUTPUT is required unless --embedded" in capsys.readouterr().err
+    assert main(["build-dataset", str(tmp_path), "--embedded", "--source", str(tmp_path)]) == 2
+    assert "--embedded builds the procedural source" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["build-dataset", str(tmp_path), "--layout", "shapenet_v3"])
+    assert exit_info.value.code == 2 and "invalid choice: 'shapenet_v3'" in capsys.readouterr().err
+    assert builds == []

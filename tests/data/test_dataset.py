@@ -1,0 +1,92 @@
+"""Datasets and transforms of lightning_vtr.data.dataset: input checks, the num_views alias, atomic writes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from lightning_vtr.data.dataset import (
+    GeneratedSample,
+    ImageTransform,
+    VTRDataset,
+    dump_index,
+    load_rgba,
+    write_generated_sample,
+)
+from lightning_vtr.data.format import scan_dataset
+
+
+def test_image_transform_composites_on_the_background_and_scales():
+    rgba = np.zeros((2, 2, 4), np.uint8)
+    rgba[0, 0] = (255, 0, 0, 255)  # opaque red
+    rgba[0, 1] = (0, 0, 0, 0)  # transparent: the background
+    out = ImageTransform(2, background=(0, 51, 255), normalize=None)(rgba)
+    assert out.shape == (3, 2, 2)
+    assert out[:, 0, 0].tolist() == [1.0, 0.0, 0.0]
+    assert torch.allclose(out[:, 0, 1], torch.tensor([0.0, 0.2, 1.0]))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"image_size": 0}, ValueError, r"`image_size` must be an int >= 1, got 0"),
+        ({"image_size": 32.0}, TypeError, r"`image_size` must be an int, got float 32.0"),
+        ({"background": (1, 2)}, ValueError, r"`background` must be three ints \(R, G, B\) in \[0, 255\], got \(1, 2\)"),
+        ({"background": (0, 0, 300)}, ValueError, r"`background\[2\]` must be an int in \[0, 255\], got 300"),
+        ({"background": 255}, TypeError, r"`background` must be a sequence of three ints"),
+        ({"normalize": "unit"}, ValueError, r"`normalize` must be one of 'imagenet', None, got 'unit'"),
+    ],
+)
+def test_image_transform_rejects_bad_arguments(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        ImageTransform(**kwargs)
+
+
+def test_image_transform_accepts_numpy_background():
+    assert ImageTransform(8, background=np.array([1, 2, 3])).background == (1, 2, 3)
+
+
+def test_vtr_dataset_num_views_and_deprecated_alias(tiny_dataset):
+    records = [r for r in scan_dataset(tiny_dataset) if r.split == "test"]
+    ds = VTRDataset(records, "hemispherical", num_views=4, transform=ImageTransform(16))
+    assert ds.num_views == 4 and len(ds) == len(records)
+    assert ds[0]["images"].shape == (4, 3, 16, 16) and ds[0]["view_set"] == "hemispherical"
+    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
+        old = VTRDataset(records, "hemispherical", n_views=4, transform=ImageTransform(16))
+    assert old.num_views == 4
+    assert np.array_equal(old.view_indices(1), ds.view_indices(1))  # same draw under either name
+    with pytest.warns(DeprecationWarning, match="`VTRDataset.n_views` was renamed"):
+        assert old.n_views == 4
+    with pytest.raises(ValueError, match=r"`num_views` must be at most the number of views of each object, got 9"):
+        VTRDataset(records, "aligned", num_views=9)  # the tiny dataset has 8 views per set
+    with pytest.raises(ValueError, match=r"`num_views` must be an int >= 1, got 0"):
+        VTRDataset(records, "aligned", num_views=0)
+
+
+def test_generated_sample_and_index_are_written_atomically(tmp_path):
+    images = np.zeros((2, 4, 4, 4), np.uint8)
+    images[1, ..., 1] = 200
+    images[..., 3] = 255
+    sample = GeneratedSample("chair", "c0", images, np.array([[0.0, 10.0], [90.0, -5.0]]), epoch=3)
+    entry = write_generated_sample(sample, tmp_path / "s0")
+    assert entry == {
+        "category": "chair",
+        "object_id": "c0",
+        "epoch": 3,
+        "dir": "s0",
+        "images": ["00.png", "01.png"],
+        "viewpoints": [[0.0, 10.0], [90.0, -5.0]],
+    }
+    assert sorted(p.name for p in (tmp_path / "s0").iterdir()) == ["00.png", "01.png"]  # no temporaries left
+    assert np.array_equal(load_rgba(tmp_path / "s0" / "01.png"), images[1])
+    dump_index([entry], tmp_path / "index.json")
+    dump_index([entry, entry], tmp_path / "index.json")  # replaces
+    assert json.loads((tmp_path / "index.json").read_text()) == [entry, entry]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["index.json", "s0"]
+    with pytest.raises(ValueError, match=r"`images` of generated sample chair/c0 must be \(T, H, W, 4\) uint8"):
+        write_generated_sample(GeneratedSample("chair", "c0", images[..., :3], np.zeros((2, 2))), tmp_path / "s1")
+    with pytest.raises(ValueError, match=r"`viewpoints` of generated sample chair/c0 must be \(2, 2\), got \(3, 2\)"):
+        write_generated_sample(GeneratedSample("chair", "c0", images, np.zeros((3, 2))), tmp_path / "s1")

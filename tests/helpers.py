@@ -1,0 +1,138 @@
+"""Models, factories and readers shared by several test modules (tests import them, never each other).
+
+pytest puts ``tests/`` on the path (``pythonpath = ["tests"]``), so a test module does
+``from helpers import TinyUserModel, make_trainer``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import nn
+
+from lightning_vtr.callback import ErrorGuidedViewAugmentation
+from lightning_vtr.data.datamodule import VTRDataModule
+from lightning_vtr.synthesis.render import RenderSynthesizer
+
+__all__ = [
+    "EmptyPredictionModel",
+    "TinyUserModel",
+    "generated_contents",
+    "generated_index",
+    "make_callback",
+    "make_datamodule",
+    "make_trainer",
+    "one_thread",
+]
+
+
+class TinyUserModel(L.LightningModule):
+    """A user's own model: satisfies the protocol without inheriting anything from lightning_vtr."""
+
+    image_size = 32
+    num_views = 3
+    voxel_resolution = 32
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = nn.Sequential(nn.Conv2d(3, 8, 4, 4), nn.ReLU(), nn.Flatten(), nn.Linear(8 * 8 * 8, 64))
+        self.decoder = nn.Linear(64, 8**3)
+
+    def predict_voxels(self, images):
+        b, v = images.shape[:2]
+        feats = self.encoder(images.flatten(0, 1)).view(b, v, -1).mean(1)
+        coarse = self.decoder(feats).view(b, 1, 8, 8, 8)
+        return torch.sigmoid(F.interpolate(coarse, size=32, mode="trilinear"))[:, 0]
+
+    def training_step(self, batch, batch_idx):
+        return F.binary_cross_entropy(self.predict_voxels(batch["images"]), batch["voxels"])
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val_loss", F.binary_cross_entropy(self.predict_voxels(batch["images"]), batch["voxels"]))
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=1e-3)
+
+
+class EmptyPredictionModel(TinyUserModel):
+    """Predicts nothing anywhere: the error volume is exactly the ground truth."""
+
+    def predict_voxels(self, images):
+        return super().predict_voxels(images) * 0.0
+
+
+def make_datamodule(root: Any, tmp_path: Path, **kw: Any) -> VTRDataModule:
+    """A 32-px datamodule over ``root`` that writes generated samples under ``tmp_path / "gen"``."""
+    return VTRDataModule(str(root), image_size=32, batch_size=8, generated_dir=str(tmp_path / "gen"), **kw)
+
+
+def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.Trainer:
+    """A quiet CPU Trainer of ``epochs`` short epochs (2 train batches) that reloads its loaders every epoch."""
+    kw.setdefault("reload_dataloaders_every_n_epochs", 1)
+    return L.Trainer(
+        max_epochs=epochs,
+        accelerator="cpu",
+        devices=1,
+        callbacks=callbacks,
+        default_root_dir=str(tmp_path),
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_train_batches=2,
+        limit_val_batches=1,
+        num_sanity_val_steps=1,
+        **kw,
+    )
+
+
+def make_callback(**kw: Any) -> ErrorGuidedViewAugmentation:
+    """The augmentation callback with 32-px mesh rendering, 20 % of the objects and no progress bar by default."""
+    kw.setdefault("synthesizer", RenderSynthesizer(image_size=32))
+    kw.setdefault("fraction", 0.2)
+    kw.setdefault("progress_bar", False)
+    return ErrorGuidedViewAugmentation(**kw)
+
+
+def generated_contents(dm: VTRDataModule) -> list[tuple]:
+    """``(epoch, category, object_id, viewpoints rounded to 1e-4, image bytes)`` of every generated sample."""
+    out = []
+    for s in dm.generated_samples:
+        images = [np.asarray(Image.open(dm.generated_dir / s["dir"] / n)) for n in s["images"]]
+        viewpoints = np.round(s["viewpoints"], 4).tolist()
+        out.append((s["epoch"], s["category"], s["object_id"], viewpoints, np.stack(images).tobytes()))
+    return out
+
+
+def generated_index(gen_dir: Path) -> list[tuple]:
+    """The same tuples as :func:`generated_contents`, read from a generated directory's ``index.json`` and files."""
+    entries = json.loads((gen_dir / "index.json").read_text())
+    return [
+        (
+            e["epoch"],
+            e["category"],
+            e["object_id"],
+            np.round(e["viewpoints"], 4).tolist(),
+            b"".join((gen_dir / e["dir"] / n).read_bytes() for n in e["images"]),
+        )
+        for e in entries
+    ]
+
+
+def one_thread():
+    """Generator body of a fixture that runs its tests with one torch intra-op thread.
+
+    Tiny tensors gain nothing from splitting; on the shared 2-core test machine extra threads only add
+    contention (OpenMP barriers made the tiny Zero-1-to-3 model about 20x slower). Use as
+    ``_one_thread = pytest.fixture(autouse=True)(one_thread)``.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
