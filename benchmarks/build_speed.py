@@ -63,13 +63,17 @@ def main() -> None:
     startup = max(0.0, t2 - n * per_object / 2)
     embedded = EMBEDDED_DEFAULTS["objects_per_category"] * len(EMBEDDED_DEFAULTS["categories"])
     size, views = EMBEDDED_DEFAULTS["image_size"], EMBEDDED_DEFAULTS["views_per_set"]
-    print(f"procedural source, {n} objects, {args.image_size} px, 3 x {args.views_per_set} views, {os.cpu_count()} CPUs")
+    print(
+        f"procedural source, {n} objects, {args.image_size} px, 3 x {args.views_per_set} views, {os.cpu_count()} CPUs"
+    )
     print(f"  1 worker : {n / t1:6.2f} objects/s  ({t1:6.1f} s, {1000 * per_object:.0f} ms per object)  [reference]")
     print(f"  2 workers: {n / t2:6.2f} objects/s  ({t2:6.1f} s incl. worker start-up; x{t1 / t2:.2f} vs 1 worker)")
     if (args.image_size, args.views_per_set) == (size, views):
         est1 = embedded * per_object
         est2 = startup + embedded * per_object / 2
-        print(f"embedded default ({embedded} objects, {size} px): ~{est1 / 60:.1f} min at 1 worker, ~{est2 / 60:.1f} min at 2 workers (extrapolated)")
+        print(
+            f"embedded default ({embedded} objects, {size} px): ~{est1 / 60:.1f} min at 1 worker, ~{est2 / 60:.1f} min at 2 workers (extrapolated)"
+        )
 
 
 if __name__ == "__main__":

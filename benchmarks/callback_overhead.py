@@ -54,9 +54,17 @@ def run(epochs: int, callback: L.Callback | None, out: str) -> EpochTimer:
     timer = EpochTimer()
     callbacks = ([callback] if callback else []) + [timer]
     trainer = L.Trainer(
-        max_epochs=epochs, accelerator="cpu", callbacks=callbacks, default_root_dir=out, logger=False,
-        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-        reload_dataloaders_every_n_epochs=1, limit_val_batches=0, num_sanity_val_steps=0,
+        max_epochs=epochs,
+        accelerator="cpu",
+        callbacks=callbacks,
+        default_root_dir=out,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        reload_dataloaders_every_n_epochs=1,
+        limit_val_batches=0,
+        num_sanity_val_steps=0,
     )
     trainer.fit(model, datamodule=dm)
     return timer

@@ -24,11 +24,17 @@ from lightning_vtr.renderer import DEFAULT_DISTANCE, Renderer, get_renderer
 def make_mesh(target_faces: int) -> trimesh.Trimesh:
     """A chair-like union of boxes plus icospheres adding up to about ``target_faces`` triangles."""
     parts = [trimesh.creation.box(extents=(0.8, 0.8, 0.1)).apply_translation((0, 0, 0.0))]
-    parts += [trimesh.creation.box(extents=(0.08, 0.08, 0.6)).apply_translation((x, y, -0.35)) for x in (-0.35, 0.35) for y in (-0.35, 0.35)]
+    parts += [
+        trimesh.creation.box(extents=(0.08, 0.08, 0.6)).apply_translation((x, y, -0.35))
+        for x in (-0.35, 0.35)
+        for y in (-0.35, 0.35)
+    ]
     parts.append(trimesh.creation.box(extents=(0.1, 0.8, 0.8)).apply_translation((-0.35, 0, 0.45)))
     spheres = max(1, (target_faces - 72) // 1280)  # an icosphere of subdivision 3 has 1280 faces
     rng = np.random.default_rng(0)
-    parts += [trimesh.creation.icosphere(3, radius=0.1).apply_translation(rng.uniform(-0.4, 0.4, 3)) for _ in range(spheres)]
+    parts += [
+        trimesh.creation.icosphere(3, radius=0.1).apply_translation(rng.uniform(-0.4, 0.4, 3)) for _ in range(spheres)
+    ]
     return normalize_mesh(trimesh.util.concatenate(parts))
 
 
@@ -68,7 +74,9 @@ def main() -> None:
     print(f"mesh: {len(mesh.faces)} faces; perspective camera; {args.views} views per batch")
     # The fresh-context reference runs first: pyrender's OffscreenRenderer.delete() terminates the EGL
     # display, which would invalidate the cached context if it already existed.
-    fresh_rates = {size: fresh_context_views_per_second(mesh, size, viewpoints[: args.fresh_calls]) for size in (128, 256)}
+    fresh_rates = {
+        size: fresh_context_views_per_second(mesh, size, viewpoints[: args.fresh_calls]) for size in (128, 256)
+    }
     for size in (128, 256):
         cached = cached_views_per_second(mesh, size, viewpoints)
         fresh = fresh_rates[size]

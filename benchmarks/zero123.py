@@ -88,14 +88,18 @@ def full_size_components() -> dict:
             hidden_act="quick_gelu",
         )
     )
-    return dict(unet=unet, vae=vae, image_encoder=image_encoder, projection=nn.Linear(772, 768), scheduler=DDIMScheduler())
+    return dict(
+        unet=unet, vae=vae, image_encoder=image_encoder, projection=nn.Linear(772, 768), scheduler=DDIMScheduler()
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--images", type=int, default=4, help="images per timed call")
     parser.add_argument("--batch-size", type=int, default=4, help="pairs per UNet call")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads (the tiny model's ops are too small to split)")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="CPU threads (the tiny model's ops are too small to split)"
+    )
     parser.add_argument("--skip-gpu", action="store_true")
     args = parser.parse_args()
 
@@ -118,7 +122,9 @@ def main() -> None:
     n_params = sum(p.numel() for p in full.unet.parameters()) / 1e6
     s = _time(full, args.images, 50, sync=True)
     name = torch.cuda.get_device_name()
-    print(f"full-size model ({n_params:.0f}M-parameter UNet), {name} fp16, 256x256, 50 steps, guidance 3.0: {s:.3f} s/image")
+    print(
+        f"full-size model ({n_params:.0f}M-parameter UNet), {name} fp16, 256x256, 50 steps, guidance 3.0: {s:.3f} s/image"
+    )
     print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.1f} GiB")
 
 

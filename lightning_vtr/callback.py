@@ -262,7 +262,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
             preds.append(pl_module.predict_voxels(batch).float().cpu())
         return torch.cat(preds)
 
-    def _select(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, chosen: list[int]) -> list[_Selected]:
+    def _select(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, chosen: list[int]
+    ) -> list[_Selected]:
         """Predict the chosen objects (sharded by rank), select their views, return them merged in order."""
         dm = trainer.datamodule
         records = dm.split_records("train")
@@ -278,7 +280,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
             selected = []
             for row, index in enumerate(mine):
                 rec = records[index]
-                context = self._context(trainer, pl_module, [self._request(dm, rec)]) if self.selector.needs_context else None
+                context = (
+                    self._context(trainer, pl_module, [self._request(dm, rec)]) if self.selector.needs_context else None
+                )
                 views = self.selector.select(
                     predicted[row : row + 1],
                     target[row : row + 1],
@@ -293,7 +297,13 @@ class ErrorGuidedViewAugmentation(L.Callback):
         return sorted(merged, key=lambda s: s.index)
 
     def _select_batched(
-        self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, mine: list[int], predicted: Tensor, target: Tensor
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        epoch: int,
+        mine: list[int],
+        predicted: Tensor,
+        target: Tensor,
     ) -> list[_Selected]:
         # Learning selectors see every searched object in one call on rank 0; the selections and the learned
         # state are broadcast so every rank (and rank 0's checkpoint) holds the same selector.
@@ -312,9 +322,15 @@ class ErrorGuidedViewAugmentation(L.Callback):
             if self.selector.needs_context:
                 context = self._context(trainer, pl_module, [self._request(dm, r) for r in recs])
             views = self.selector.select(
-                all_pred, all_target, [r.category for r in recs], generator=_generator(self.seed, epoch, 0, 2), context=context
+                all_pred,
+                all_target,
+                [r.category for r in recs],
+                generator=_generator(self.seed, epoch, 0, 2),
+                context=context,
             )
-            selected = [self._selected(r, i, v, p, t) for r, i, v, p, t in zip(recs, indices, views, all_pred, all_target)]
+            selected = [
+                self._selected(r, i, v, p, t) for r, i, v, p, t in zip(recs, indices, views, all_pred, all_target)
+            ]
             payload = (selected, self.selector.state_dict())
         payload = _broadcast(trainer, payload)
         if not trainer.is_global_zero:

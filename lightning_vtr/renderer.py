@@ -168,7 +168,9 @@ class Renderer:
         # behind the far side of the object's bounding sphere (radius DEFAULT_HALF_EXTENT), with a margin
         zfar = self.distance + 2.0 * DEFAULT_HALF_EXTENT + 1.0
         if self.camera == "perspective":
-            return pyrender.PerspectiveCamera(yfov=math.radians(self.yfov_deg), aspectRatio=1.0, znear=_ZNEAR, zfar=zfar)
+            return pyrender.PerspectiveCamera(
+                yfov=math.radians(self.yfov_deg), aspectRatio=1.0, znear=_ZNEAR, zfar=zfar
+            )
         return pyrender.OrthographicCamera(xmag=self.half_extent, ymag=self.half_extent, znear=_ZNEAR, zfar=zfar)
 
     def _make_scene(self, mesh: trimesh.Trimesh) -> tuple[pyrender.Scene, pyrender.Node]:
@@ -199,7 +201,11 @@ class Renderer:
             raise RuntimeError("This Renderer was closed; create a new one or call get_renderer()")
         poses = self._poses(viewpoints)
         size = self.image_size
-        out = np.zeros((len(poses), size, size, 4), np.uint8) if want_color else np.zeros((len(poses), size, size), np.float32)
+        out = (
+            np.zeros((len(poses), size, size, 4), np.uint8)
+            if want_color
+            else np.zeros((len(poses), size, size), np.float32)
+        )
         if len(poses) == 0:
             return out
         scene, camera_node = self._make_scene(mesh)

@@ -97,7 +97,9 @@ def test_setup_refuses_a_model_without_the_protocol(tiny_dataset, tmp_path):
         predict_voxels = None
 
     with pytest.raises(MisconfigurationException, match="predict_voxels"):
-        make_trainer(tmp_path, 1, [make_callback()]).fit(NoProtocol(), datamodule=make_datamodule(tiny_dataset, tmp_path))
+        make_trainer(tmp_path, 1, [make_callback()]).fit(
+            NoProtocol(), datamodule=make_datamodule(tiny_dataset, tmp_path)
+        )
 
 
 def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path):
@@ -114,7 +116,9 @@ def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path)
         assert any(np.allclose(v.numpy(), s["viewpoints"], atol=1e-4) for v in sets)
     # The images are renders of the object's mesh at exactly those viewpoints.
     rec = dm.record(samples[0]["category"], samples[0]["object_id"])
-    expected = RenderSynthesizer(image_size=32).synthesize([callback._request(dm, rec, torch.tensor(samples[0]["viewpoints"]))])[0]
+    expected = RenderSynthesizer(image_size=32).synthesize(
+        [callback._request(dm, rec, torch.tensor(samples[0]["viewpoints"]))]
+    )[0]
     got = np.stack([np.asarray(Image.open(dm.generated_dir / samples[0]["dir"] / n)) for n in samples[0]["images"]])
     assert np.array_equal(got, expected)
     # With an empty prediction the error is the ground truth: the logged error is the objects' occupancy.
@@ -193,9 +197,18 @@ def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path)
     ddp = tmp_path / "ddp"
     probe = DatasetDigestProbe(str(tmp_path / "digests.jsonl"))
     trainer = L.Trainer(
-        max_epochs=3, accelerator="cpu", devices=2, strategy="ddp_spawn", callbacks=[make_callback(fraction=0.2), probe],
-        default_root_dir=str(ddp), logger=False, enable_progress_bar=False, enable_model_summary=False,
-        limit_train_batches=2, limit_val_batches=1, reload_dataloaders_every_n_epochs=1,
+        max_epochs=3,
+        accelerator="cpu",
+        devices=2,
+        strategy="ddp_spawn",
+        callbacks=[make_callback(fraction=0.2), probe],
+        default_root_dir=str(ddp),
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_train_batches=2,
+        limit_val_batches=1,
+        reload_dataloaders_every_n_epochs=1,
     )
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 

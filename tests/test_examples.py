@@ -25,8 +25,22 @@ def _load(name: str):
 @pytest.mark.parametrize("name, title", [("pix2vox_vtr", "Pix2Vox++"), ("lrgt_vtr", "LRGT")])
 def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, name, title):
     out = tmp_path / name
-    argv = ["--data", str(tiny_dataset), "--pretrain-epochs", "1", "--finetune-epochs", "2", "--batch-size", "8",
-            "--fraction", "0.15", "--accelerator", "cpu", "--out", str(out)]
+    argv = [
+        "--data",
+        str(tiny_dataset),
+        "--pretrain-epochs",
+        "1",
+        "--finetune-epochs",
+        "2",
+        "--batch-size",
+        "8",
+        "--fraction",
+        "0.15",
+        "--accelerator",
+        "cpu",
+        "--out",
+        str(out),
+    ]
     runs = _load(name).main(argv)
     printed = capsys.readouterr().out
 

@@ -48,9 +48,16 @@ def test_camera_frame_hand_computed(vp, centre, up, right):
 
 
 def test_random_bases_are_orthonormal_right_handed_and_look_at_the_origin():
-    vp = torch.cat([g.sample_uniform_viewpoints(200, generator=torch.Generator().manual_seed(0)).double(), _t([[10, 90], [-77, -90]])])
+    vp = torch.cat(
+        [
+            g.sample_uniform_viewpoints(200, generator=torch.Generator().manual_seed(0)).double(),
+            _t([[10, 90], [-77, -90]]),
+        ]
+    )
     basis = g.camera_basis(vp)
-    torch.testing.assert_close(basis @ basis.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(len(vp), 3, 3), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        basis @ basis.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(len(vp), 3, 3), atol=1e-12, rtol=0
+    )
     torch.testing.assert_close(torch.linalg.det(basis), torch.ones(len(vp), dtype=torch.float64), atol=1e-12, rtol=0)
     # The origin maps to the optical axis: camera coordinates (0, 0, -r) for a camera at distance r.
     pose = g.camera_pose(vp, radius=2.0)
@@ -69,9 +76,13 @@ def test_orthographic_pixel_coords_hand_computed():
 
 
 def test_wrap_and_clamp_edge_cases():
-    torch.testing.assert_close(g.wrap_yaw(_t([180.0, -180.0, 540.0, -181.0, 179.5, 360.0])), _t([-180.0, -180.0, -180.0, 179.0, 179.5, 0.0]))
+    torch.testing.assert_close(
+        g.wrap_yaw(_t([180.0, -180.0, 540.0, -181.0, 179.5, 360.0])), _t([-180.0, -180.0, -180.0, 179.0, 179.5, 0.0])
+    )
     torch.testing.assert_close(g.clamp_pitch(_t([95.0, -90.0, -100.0, 12.0])), _t([90.0, -90.0, -90.0, 12.0]))
-    torch.testing.assert_close(g.normalize_viewpoints(_t([[190.0, 100.0], [-180.0, -90.0]])), _t([[-170.0, 90.0], [-180.0, -90.0]]))
+    torch.testing.assert_close(
+        g.normalize_viewpoints(_t([[190.0, 100.0], [-180.0, -90.0]])), _t([[-170.0, 90.0], [-180.0, -90.0]])
+    )
     with pytest.raises(ValueError, match="viewpoints"):
         g.check_viewpoints(_t([1.0, 2.0, 3.0]))
     with pytest.raises(ValueError, match="NaN"):
@@ -85,9 +96,21 @@ def test_bins_for_k30():
     cands = g.candidate_viewpoints(30)
     assert cands.shape == (72, 2)
     # Pitch-major: index = i_pitch * 12 + i_yaw.
-    assert cands[0].tolist() == [-165.0, -75.0] and cands[13].tolist() == [-135.0, -45.0] and cands[-1].tolist() == [165.0, 75.0]
-    assert g.candidate_viewpoints(90).tolist() == [[-135.0, -45.0], [-45.0, -45.0], [45.0, -45.0], [135.0, -45.0],
-                                                    [-135.0, 45.0], [-45.0, 45.0], [45.0, 45.0], [135.0, 45.0]]
+    assert (
+        cands[0].tolist() == [-165.0, -75.0]
+        and cands[13].tolist() == [-135.0, -45.0]
+        and cands[-1].tolist() == [165.0, 75.0]
+    )
+    assert g.candidate_viewpoints(90).tolist() == [
+        [-135.0, -45.0],
+        [-45.0, -45.0],
+        [45.0, -45.0],
+        [135.0, -45.0],
+        [-135.0, 45.0],
+        [-45.0, 45.0],
+        [45.0, 45.0],
+        [135.0, 45.0],
+    ]
 
 
 @pytest.mark.parametrize("k", [7, 0, -30, 2.5, 360])
@@ -147,9 +170,13 @@ def test_gaussian_sampling_std_and_wrapping():
     n = 20_000
     centres = _t([[10.0, 0.0]]).expand(n, 2)
     out = g.sample_gaussian_viewpoints(centres, sigma=5.0, generator=torch.Generator().manual_seed(2))
-    assert out[:, 0].std().item() == pytest.approx(5.0, rel=0.03) and out[:, 1].std().item() == pytest.approx(5.0, rel=0.03)
+    assert out[:, 0].std().item() == pytest.approx(5.0, rel=0.03) and out[:, 1].std().item() == pytest.approx(
+        5.0, rel=0.03
+    )
     assert out[:, 0].mean().item() == pytest.approx(10.0, abs=0.15)
-    edge = g.sample_gaussian_viewpoints(_t([[175.0, 88.0]]).expand(n, 2), sigma=5.0, generator=torch.Generator().manual_seed(3))
+    edge = g.sample_gaussian_viewpoints(
+        _t([[175.0, 88.0]]).expand(n, 2), sigma=5.0, generator=torch.Generator().manual_seed(3)
+    )
     assert edge[:, 0].min() >= -180 and edge[:, 0].max() < 180 and (edge[:, 0] < 0).any()  # wrapped past 180
     assert edge[:, 1].max() == 90.0 and (edge[:, 1] == 90.0).double().mean().item() == pytest.approx(0.345, abs=0.02)
 
@@ -165,7 +192,9 @@ def test_voxel_centers_and_index_inverse():
     assert c.shape == (4, 4, 4, 3)
     assert c[0, 0, 0].tolist() == [-0.375, -0.375, -0.375]
     assert c[3, 1, 2].tolist() == [0.375, -0.125, 0.125]  # (i, j, k) -> (x, y, z)
-    assert torch.equal(g.world_to_voxel_index(c, 4), torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1))
+    assert torch.equal(
+        g.world_to_voxel_index(c, 4), torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1)
+    )
     assert g.world_to_voxel_index(_t([[0.5, -0.5, 0.0]]), 4).tolist() == [[4, 0, 2]]
 
 

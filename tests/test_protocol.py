@@ -35,7 +35,12 @@ def test_view_sets_have_one_home():
     import lightning_vtr.models.base
 
     assert lightning_vtr.data.VIEW_SETS is lightning_vtr.models.VIEW_SETS is VIEW_SETS
-    for module in (lightning_vtr.data.format, lightning_vtr.data.datamodule, lightning_vtr.data.builder, lightning_vtr.models.base):
+    for module in (
+        lightning_vtr.data.format,
+        lightning_vtr.data.datamodule,
+        lightning_vtr.data.builder,
+        lightning_vtr.models.base,
+    ):
         assert module.VIEW_SETS is VIEW_SETS, module.__name__
 
 

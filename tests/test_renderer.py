@@ -80,8 +80,12 @@ class TestSilhouetteMatchesErrorProjection:
         }
         for name, proj in wrong.items():
             iou = _iou(silhouette, proj)
-            assert iou.mean() < 0.7, f"{name}: mean IoU {iou.mean():.3f} should be far below the correct {right.mean():.3f}"
-            assert (iou < right - 0.05).mean() >= 0.75, f"{name}: IoU {np.round(iou, 2)} vs correct {np.round(right, 2)}"
+            assert iou.mean() < 0.7, (
+                f"{name}: mean IoU {iou.mean():.3f} should be far below the correct {right.mean():.3f}"
+            )
+            assert (iou < right - 0.05).mean() >= 0.75, (
+                f"{name}: IoU {np.round(iou, 2)} vs correct {np.round(right, 2)}"
+            )
 
 
 # --------------------------------------------------------------------------- camera geometry
@@ -189,7 +193,9 @@ def test_composite_blends_over_background():
     np.testing.assert_array_equal(out[0, 0, 0], [255, 255, 255])
     np.testing.assert_array_equal(out[0, 0, 1], [10, 20, 30])
     a = 128 / 255
-    np.testing.assert_array_equal(out[0, 0, 2], np.rint([200 * a + 255 * (1 - a), 100 * a + 255 * (1 - a), 255 * (1 - a)]))
+    np.testing.assert_array_equal(
+        out[0, 0, 2], np.rint([200 * a + 255 * (1 - a), 100 * a + 255 * (1 - a), 255 * (1 - a)])
+    )
     np.testing.assert_array_equal(composite(rgba, background=(0, 0, 0))[0, 0, 0], [0, 0, 0])
     with pytest.raises(ValueError, match="rgba"):
         composite(rgba[..., :3])

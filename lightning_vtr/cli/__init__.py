@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from lightning_vtr.cli.main import COMMANDS, build_parser, main
+from lightning_vtr.cli.dispatch import COMMANDS, build_parser, main
 
 __all__ = ["COMMANDS", "build_parser", "main"]

@@ -2,6 +2,6 @@
 
 import sys
 
-from lightning_vtr.cli.main import main
+from lightning_vtr.cli.dispatch import main
 
 sys.exit(main())

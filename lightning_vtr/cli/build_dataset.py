@@ -24,11 +24,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add = parser.add_argument
     add("output", nargs="?", type=Path, help="dataset directory (omit with --embedded: the cache directory)")
-    add("--source", default="procedural",
-        help="'procedural' or a folder: ShapeNetCore v1/v2 or <category>/<object>.<ext>")
+    add(
+        "--source",
+        default="procedural",
+        help="'procedural' or a folder: ShapeNetCore v1/v2 or <category>/<object>.<ext>",
+    )
     add("--embedded", action="store_true", help="use the embedded dataset's options for every option not given")
-    add("--objects-per-category", type=positive_int, default=None,
-        help="first N objects per category (default: 30 procedural, all from a folder)")
+    add(
+        "--objects-per-category",
+        type=positive_int,
+        default=None,
+        help="first N objects per category (default: 30 procedural, all from a folder)",
+    )
     add("--categories", type=comma_separated(), default=None, help="comma-separated categories (or synset ids)")
     add("--image-size", type=positive_int, default=None, help="image side in pixels (default 128)")
     add("--resolution", type=positive_int, default=None, help="voxel grid side R (default 32)")
@@ -40,8 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--shard", type=shard, default=(0, 1), help="build shard i of n (0-based), e.g. 3/16")
     add("--finalize", action="store_true", help="only write metadata.json once every shard has finished")
     add("--layout", default="auto", choices=SOURCE_LAYOUTS, help="source folder layout")
-    add("--up-axis", choices=UP_AXES, default=None,
-        help="meshes' up axis (default: y for ShapeNet, z for generic)")
+    add("--up-axis", choices=UP_AXES, default=None, help="meshes' up axis (default: y for ShapeNet, z for generic)")
     add("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -90,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if report.finalized:
         print(dataset_summary(output))
     elif args.shard[1] > 1:
-        print(f"Shard {args.shard[0]}/{args.shard[1]} done; metadata.json is written when every shard has finished "
-              f"(or run `lightning-vtr build-dataset {output} --finalize`).")
+        print(
+            f"Shard {args.shard[0]}/{args.shard[1]} done; metadata.json is written when every shard has finished "
+            f"(or run `lightning-vtr build-dataset {output} --finalize`)."
+        )
     return 0

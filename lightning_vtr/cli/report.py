@@ -31,27 +31,56 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "report.png into --out. A killed report re-run skips every finished run."
     )
     add = parser.add_argument
-    add("--model", choices=list(MODELS), default=defaults.model,
-        help=f"reconstruction model (default {defaults.model})")
+    add(
+        "--model", choices=list(MODELS), default=defaults.model, help=f"reconstruction model (default {defaults.model})"
+    )
     add("--preset", default=defaults.preset, help=f"model preset (default {defaults.preset})")
     add("--data", default=defaults.data, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
     add("--out", default=defaults.out, help=f"output directory (default {defaults.out})")
-    add("--seeds", type=int, nargs="+", default=[defaults.seed],
-        help=f"seeds; several give mean ± std (default {defaults.seed})")
-    add("--pretrain-epochs", type=positive_int, default=defaults.pretrain_epochs,
-        help=f"epochs on Aligned (default {defaults.pretrain_epochs})")
-    add("--finetune-epochs", type=positive_int, default=defaults.finetune_epochs,
-        help=f"fine-tuning epochs per strategy (default {defaults.finetune_epochs})")
-    add("--strategies", type=comma_separated(STRATEGIES), default=list(STRATEGIES),
-        help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)")
+    add(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[defaults.seed],
+        help=f"seeds; several give mean ± std (default {defaults.seed})",
+    )
+    add(
+        "--pretrain-epochs",
+        type=positive_int,
+        default=defaults.pretrain_epochs,
+        help=f"epochs on Aligned (default {defaults.pretrain_epochs})",
+    )
+    add(
+        "--finetune-epochs",
+        type=positive_int,
+        default=defaults.finetune_epochs,
+        help=f"fine-tuning epochs per strategy (default {defaults.finetune_epochs})",
+    )
+    add(
+        "--strategies",
+        type=comma_separated(STRATEGIES),
+        default=list(STRATEGIES),
+        help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)",
+    )
     add("--no-ablations", action="store_true", help="skip the K, pool and single-view ablations")
-    add("--fraction", type=float, default=defaults.fraction,
-        help=f"share of training objects searched per epoch (default {defaults.fraction})")
-    add("--finetune-lr", choices=FINETUNE_LR_SCHEDULES, default=defaults.finetune_lr,
-        help="fine-tuning learning-rate schedule: annealed to 0 or the model's own "
-        f"(default {defaults.finetune_lr})")
-    add("--batch-size", type=positive_int, default=defaults.batch_size,
-        help=f"batch size (default {defaults.batch_size})")
+    add(
+        "--fraction",
+        type=float,
+        default=defaults.fraction,
+        help=f"share of training objects searched per epoch (default {defaults.fraction})",
+    )
+    add(
+        "--finetune-lr",
+        choices=FINETUNE_LR_SCHEDULES,
+        default=defaults.finetune_lr,
+        help=f"fine-tuning learning-rate schedule: annealed to 0 or the model's own (default {defaults.finetune_lr})",
+    )
+    add(
+        "--batch-size",
+        type=positive_int,
+        default=defaults.batch_size,
+        help=f"batch size (default {defaults.batch_size})",
+    )
     add("--accelerator", default=defaults.accelerator, help=f"Trainer accelerator (default {defaults.accelerator})")
     add("--devices", default=str(defaults.devices), help=f"Trainer devices (default {defaults.devices})")
 

@@ -122,7 +122,9 @@ def read_binvox(
     total = int(counts.sum())
     expected = dims[0] * dims[1] * dims[2]
     if total != expected:
-        raise ValueError(f"Bad binvox data in '{path}': runs cover {total} voxels, header 'dim {dims}' needs {expected}")
+        raise ValueError(
+            f"Bad binvox data in '{path}': runs cover {total} voxels, header 'dim {dims}' needs {expected}"
+        )
     flat = np.repeat(values > 0, counts)
     # Stored order x (slowest), z, y (fastest): reshape to (x, z, y) then swap to (x, y, z).
     voxels = flat.reshape(dims[0], dims[2], dims[1]).transpose(0, 2, 1)

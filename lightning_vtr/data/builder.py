@@ -191,7 +191,9 @@ def _discover(
         cats = list(categories) if categories else list(CATEGORIES)
         unknown = sorted(set(cats) - set(CATEGORIES))
         if unknown:
-            raise ValueError(f"`categories` must be procedural categories (of {list(CATEGORIES)}), got unknown {unknown}")
+            raise ValueError(
+                f"`categories` must be procedural categories (of {list(CATEGORIES)}), got unknown {unknown}"
+            )
         n = DEFAULT_PROCEDURAL_OBJECTS if objects_per_category is None else objects_per_category
         return [_Task(c, object_id(c, i), "procedural", index=i) for c in sorted(cats) for i in range(n)]
     root = Path(source)
@@ -206,7 +208,9 @@ def _discover(
         if wanted is not None and not {cat_dir.name, category} & wanted:
             continue
         if layout == "generic":
-            found = [(p.stem, p) for p in sorted(cat_dir.iterdir()) if p.is_file() and p.suffix.lower() in MESH_EXTENSIONS]
+            found = [
+                (p.stem, p) for p in sorted(cat_dir.iterdir()) if p.is_file() and p.suffix.lower() in MESH_EXTENSIONS
+            ]
             up = up_axis or "z"
         else:
             rel = Path("models/model_normalized.obj") if layout == "shapenet_v2" else Path("model.obj")
@@ -265,7 +269,11 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
         write_binvox(directory / "model.binvox", voxels)
         save_mesh(mesh, directory / "mesh.ply")
         views = view_set_viewpoints(
-            task.category, task.object_id, views_per_set=opts["views_per_set"], aligned_pitch=opts["aligned_pitch"], seed=opts["seed"]
+            task.category,
+            task.object_id,
+            views_per_set=opts["views_per_set"],
+            aligned_pitch=opts["aligned_pitch"],
+            seed=opts["seed"],
         )
         renderer = get_renderer(opts["image_size"])
         names = list(views)
@@ -332,7 +340,9 @@ def _check_args(
     except (TypeError, ValueError):
         raise TypeError(f"`split` must be three (train, val, test) ratios, got {split!r}") from None
     if len(ratios) != 3 or abs(sum(ratios) - 1.0) > 1e-6 or min(ratios) < 0:
-        raise ValueError(f"`split` must be three non-negative (train, val, test) ratios summing to 1, got {tuple(split)}")
+        raise ValueError(
+            f"`split` must be three non-negative (train, val, test) ratios summing to 1, got {tuple(split)}"
+        )
     try:
         index, count = shard
     except (TypeError, ValueError):
@@ -422,7 +432,13 @@ def build_dataset(
     _check_args(image_size, resolution, views_per_set, aligned_pitch, split, shard, source_layout, workers, up_axis)
     start = time.perf_counter()
     out = Path(output_dir)
-    opts = dict(image_size=int(image_size), resolution=int(resolution), views_per_set=int(views_per_set), aligned_pitch=float(aligned_pitch), seed=int(seed))
+    opts = dict(
+        image_size=int(image_size),
+        resolution=int(resolution),
+        views_per_set=int(views_per_set),
+        aligned_pitch=float(aligned_pitch),
+        seed=int(seed),
+    )
     tasks = _discover(source, source_layout, objects_per_category, categories, up_axis)
     out.mkdir(parents=True, exist_ok=True)
     config = _content_config(source, categories, objects_per_category, opts, split, source_layout, up_axis)
@@ -476,7 +492,9 @@ def _collect_errors(out: Path, tasks: list[_Task]) -> dict[str, str]:
     return errors
 
 
-def _finalize(out: Path, tasks: list[_Task], errors: dict[str, str], split: Sequence[float], seed: int, opts: dict, config: dict) -> bool:
+def _finalize(
+    out: Path, tasks: list[_Task], errors: dict[str, str], split: Sequence[float], seed: int, opts: dict, config: dict
+) -> bool:
     complete = []
     for t in tasks:
         if (object_dir(out, t.category, t.object_id) / "object.json").is_file():
@@ -503,7 +521,11 @@ def _finalize(out: Path, tasks: list[_Task], errors: dict[str, str], split: Sequ
             "views_per_set": opts["views_per_set"],
             "view_sets": list(VIEW_SETS),
             "aligned_pitch": opts["aligned_pitch"],
-            "sampling": {"aligned": "yaw every 360/views_per_set deg at aligned_pitch", "hemispherical": "area-uniform, pitch in [0, 90]", "spherical": "area-uniform, pitch in [-90, 90]"},
+            "sampling": {
+                "aligned": "yaw every 360/views_per_set deg at aligned_pitch",
+                "hemispherical": "area-uniform, pitch in [0, 90]",
+                "spherical": "area-uniform, pitch in [-90, 90]",
+            },
             "camera": {"type": "perspective", "yfov_deg": DEFAULT_YFOV_DEG, "distance": DEFAULT_DISTANCE},
             "split_ratios": [float(r) for r in split],
             "seed": seed,
@@ -531,14 +553,24 @@ def finalize_dataset(output_dir: str | Path) -> BuildReport:
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: start a build with `lightning-vtr build-dataset {out}` first")
     config = json.loads(path.read_text())
-    tasks = _discover(config["source"], config["source_layout"], config["objects_per_category"], config["categories"], config["up_axis"])
+    tasks = _discover(
+        config["source"],
+        config["source_layout"],
+        config["objects_per_category"],
+        config["categories"],
+        config["up_axis"],
+    )
     errors = _collect_errors(out, tasks)
     atomic_write_json(out / "errors.json", errors)
     opts = {k: config[k] for k in ("image_size", "resolution", "views_per_set", "aligned_pitch", "seed")}
     report = BuildReport(output_dir=out, failed=errors)
     report.finalized = _finalize(out, tasks, errors, config["split"], config["seed"], opts, config)
     if not report.finalized:
-        missing = [t.key for t in tasks if t.key not in errors and not (object_dir(out, t.category, t.object_id) / "object.json").is_file()]
+        missing = [
+            t.key
+            for t in tasks
+            if t.key not in errors and not (object_dir(out, t.category, t.object_id) / "object.json").is_file()
+        ]
         raise RuntimeError(
             f"Cannot finalize {out}: {len(missing)} object(s) are not built yet (e.g. {missing[:5]}); "
             "wait for every shard, or re-run a shard to finish them"
@@ -556,7 +588,9 @@ def embedded_dataset_dir(**overrides: Any) -> Path:
     return base / f"embedded-{digest}"
 
 
-def ensure_embedded_dataset(root: str | Path | None = None, *, progress: bool = True, workers: int | None = None, **overrides: Any) -> Path:
+def ensure_embedded_dataset(
+    root: str | Path | None = None, *, progress: bool = True, workers: int | None = None, **overrides: Any
+) -> Path:
     """Build the embedded procedural dataset once (cached) and return its directory.
 
     Args:
@@ -572,8 +606,11 @@ def ensure_embedded_dataset(root: str | Path | None = None, *, progress: bool = 
     opts = {**EMBEDDED_DEFAULTS, **overrides}
     root = embedded_dataset_dir(**overrides) if root is None else Path(root)
     if not (root / "metadata.json").is_file():
-        report = build_dataset(root, source="procedural", progress=progress, workers=workers or min(2, os.cpu_count() or 1), **opts)
+        report = build_dataset(
+            root, source="procedural", progress=progress, workers=workers or min(2, os.cpu_count() or 1), **opts
+        )
         if not report.finalized or report.failed:
-            raise RuntimeError(f"Building the embedded dataset in {root} did not complete: {report.summary()}; see {root / 'errors.json'}")
+            raise RuntimeError(
+                f"Building the embedded dataset in {root} did not complete: {report.summary()}; see {root / 'errors.json'}"
+            )
     return root
-

@@ -179,7 +179,9 @@ class VTRDataModule(L.LightningDataModule):
         if self._category_filter is not None:
             unknown = set(self._category_filter) - {r.category for r in records}
             if unknown:
-                raise ValueError(f"`categories` must be categories of the dataset at {root}, got unknown {sorted(unknown)}")
+                raise ValueError(
+                    f"`categories` must be categories of the dataset at {root}, got unknown {sorted(unknown)}"
+                )
             records = [r for r in records if r.category in self._category_filter]
         # A fixed order makes every process (and every resumed run) index objects identically.
         self._records = sorted(records, key=lambda r: (r.category, r.object_id))
@@ -215,7 +217,12 @@ class VTRDataModule(L.LightningDataModule):
     # ------------------------------------------------------------------ loaders
     def _dataset(self, split: str, view_set: str, train: bool) -> VTRDataset:
         return VTRDataset(
-            self.split_records(split), view_set, num_views=self.num_views, transform=self.transform, train=train, seed=self.seed
+            self.split_records(split),
+            view_set,
+            num_views=self.num_views,
+            transform=self.transform,
+            train=train,
+            seed=self.seed,
         )
 
     def _epoch(self) -> int:

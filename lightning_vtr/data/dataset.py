@@ -105,7 +105,9 @@ class ImageTransform:
             x = x[..., :3] * alpha + bg * (1.0 - alpha)
         x = x.permute(0, 3, 1, 2)
         if x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
-            x = F.interpolate(x, size=(self.image_size, self.image_size), mode="bilinear", antialias=True, align_corners=False)
+            x = F.interpolate(
+                x, size=(self.image_size, self.image_size), mode="bilinear", antialias=True, align_corners=False
+            )
             x = x.clamp(0.0, 1.0)
         if self.normalize == "imagenet":
             x = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)

@@ -130,14 +130,18 @@ def _read_json(path: Path) -> Any:
 
 def _check_views(views: Any, source: Path, view_sets: tuple[str, ...] | list[str]) -> dict[str, np.ndarray]:
     if not isinstance(views, Mapping):
-        raise DatasetFormatError(f"{source}: 'views' must map view-set names to viewpoint lists, got {type(views).__name__}")
+        raise DatasetFormatError(
+            f"{source}: 'views' must map view-set names to viewpoint lists, got {type(views).__name__}"
+        )
     out = {}
     for name in view_sets:
         if name not in views:
             raise DatasetFormatError(f"{source}: view set {name!r} is missing; it has {sorted(views)}")
         vp = np.asarray(views[name], dtype=np.float64)
         if vp.ndim != 2 or vp.shape[1] != 2 or not np.isfinite(vp).all():
-            raise DatasetFormatError(f"{source}: view set {name!r} must be a list of finite [yaw, pitch] pairs, got shape {vp.shape}")
+            raise DatasetFormatError(
+                f"{source}: view set {name!r} must be a list of finite [yaw, pitch] pairs, got shape {vp.shape}"
+            )
         out[name] = vp
     return out
 
@@ -175,7 +179,9 @@ def load_metadata(root: str | Path) -> dict:
         raise DatasetFormatError(f"{path}: format is {found!r}, expected {FORMAT_NAME!r}")
     version = meta.get("version")
     if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
-        raise DatasetFormatError(f"{path}: format version {version!r}; this lightning_vtr reads versions 1..{FORMAT_VERSION}")
+        raise DatasetFormatError(
+            f"{path}: format version {version!r}; this lightning_vtr reads versions 1..{FORMAT_VERSION}"
+        )
     missing = [k for k in ("objects", "view_sets", "resolution", "image_size") if k not in meta]
     if missing:
         raise DatasetFormatError(f"{path} lacks the fields {missing}")
@@ -256,9 +262,13 @@ def dataset_summary(root: str | Path) -> str:
     ]
     for category in sorted(counts):
         row = counts[category]
-        lines.append(f"  {category:<{width}}  {row['train']:>6} {row['val']:>6} {row['test']:>6} {sum(row.values()):>6}")
+        lines.append(
+            f"  {category:<{width}}  {row['train']:>6} {row['val']:>6} {row['test']:>6} {sum(row.values()):>6}"
+        )
     totals = {s: sum(r[s] for r in counts.values()) for s in SPLITS}
-    lines.append(f"  {'all':<{width}}  {totals['train']:>6} {totals['val']:>6} {totals['test']:>6} {sum(totals.values()):>6}")
+    lines.append(
+        f"  {'all':<{width}}  {totals['train']:>6} {totals['val']:>6} {totals['test']:>6} {sum(totals.values()):>6}"
+    )
     failed = meta.get("failed", [])
     if failed:
         lines.append(f"  {len(failed)} object(s) failed to build; see {root / 'errors.json'}")

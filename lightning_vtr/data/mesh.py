@@ -28,9 +28,7 @@ _FLAT_TOLERANCE = 1e-7
 
 # Rotation by +90 degrees about +X: takes +Y to +Z and +Z to -Y, a proper rotation, so
 # handedness (and face winding) is preserved.
-_Y_UP_TO_Z_UP = np.array(
-    [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-)
+_Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 class MeshError(ValueError):

@@ -176,16 +176,24 @@ def _lamp(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
     kind = rng.choice(["floor", "table", "desk"])
     base_r = rng.uniform(0.1, 0.18)
     base_h = rng.uniform(0.02, 0.05)
-    parts = [_vcyl(base_r, 0.0, base_h) if rng.random() < 0.6 else _box((2 * base_r, 2 * base_r, base_h), (0, 0, base_h / 2))]
+    parts = [
+        _vcyl(base_r, 0.0, base_h) if rng.random() < 0.6 else _box((2 * base_r, 2 * base_r, base_h), (0, 0, base_h / 2))
+    ]
     stem_r = rng.uniform(0.01, 0.02)
     if kind == "floor":
         stem_top = rng.uniform(1.2, 1.7)
         parts.append(_vcyl(stem_r, base_h, stem_top))
         shade_h = rng.uniform(0.2, 0.35)
-        parts.append(_frustum(rng.uniform(0.15, 0.25), rng.uniform(0.06, 0.12), stem_top - shade_h * 0.5, stem_top + shade_h * 0.5))
+        parts.append(
+            _frustum(
+                rng.uniform(0.15, 0.25), rng.uniform(0.06, 0.12), stem_top - shade_h * 0.5, stem_top + shade_h * 0.5
+            )
+        )
     elif kind == "table":
         body_h = rng.uniform(0.2, 0.35)
-        parts.append(_frustum(base_r * 0.6, base_r * rng.uniform(0.3, 0.8), base_h, base_h + body_h))  # a vase-like body
+        parts.append(
+            _frustum(base_r * 0.6, base_r * rng.uniform(0.3, 0.8), base_h, base_h + body_h)
+        )  # a vase-like body
         stem_top = base_h + body_h + rng.uniform(0.1, 0.2)
         parts.append(_vcyl(stem_r, base_h + body_h, stem_top))
         shade_h = rng.uniform(0.15, 0.3)
@@ -265,7 +273,9 @@ def _car(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
         parts.append(_box((cab_len, width * 0.9, cabin_h), (cab_x, 0, body_top + cabin_h / 2)))
         bed_x0, bed_x1 = -length / 2, cab_x - cab_len / 2
         for sy in (-1, 1):  # the open bed's side walls
-            parts.append(_box((bed_x1 - bed_x0, 0.08, 0.3), ((bed_x0 + bed_x1) / 2, sy * (width / 2 - 0.04), body_top + 0.15)))
+            parts.append(
+                _box((bed_x1 - bed_x0, 0.08, 0.3), ((bed_x0 + bed_x1) / 2, sy * (width / 2 - 0.04), body_top + 0.15))
+            )
         parts.append(_box((0.08, width, 0.3), (bed_x0 + 0.04, 0, body_top + 0.15)))
     else:
         cab_len = length * {"sedan": 0.45, "hatchback": 0.55, "suv": 0.65, "sports": 0.4}[str(kind)]
@@ -293,7 +303,10 @@ def _bench(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
     else:  # a slatted seat
         n = int(rng.integers(3, 6))
         slat = depth / n * 0.8
-        parts = [_box((slat, length, seat_t), (x, 0, seat_h - seat_t / 2)) for x in np.linspace(-depth / 2 + slat / 2, depth / 2 - slat / 2, n)]
+        parts = [
+            _box((slat, length, seat_t), (x, 0, seat_h - seat_t / 2))
+            for x in np.linspace(-depth / 2 + slat / 2, depth / 2 - slat / 2, n)
+        ]
         parts.append(_box((depth, 0.05, seat_t), (0, 0, seat_h - seat_t * 1.5)))  # a cross-beam holding the slats
     if support == "legs":
         parts += _legs(rng, depth / 2, length / 2, z_under, 0.05)
@@ -323,7 +336,9 @@ def _sofa(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
     arm_w = rng.uniform(0.12, 0.25) if arms else 0.0
     z_base = leg_h + base_h
     parts = [_box((depth, length, base_h), (0, 0, leg_h + base_h / 2))]
-    parts.append(_box((back_t, length, back_h + cushion_t), (-depth / 2 + back_t / 2, 0, z_base + (back_h + cushion_t) / 2)))
+    parts.append(
+        _box((back_t, length, back_h + cushion_t), (-depth / 2 + back_t / 2, 0, z_base + (back_h + cushion_t) / 2))
+    )
     n_cushions = int(rng.integers(1, 4))
     inner = length - 2 * arm_w
     for k in range(n_cushions):
@@ -333,11 +348,18 @@ def _sofa(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
     if arms:
         arm_top = z_base + cushion_t + rng.uniform(0.1, 0.25)
         for sy in (-1, 1):
-            parts.append(_box((depth, arm_w, arm_top - leg_h), (0, sy * (length / 2 - arm_w / 2), leg_h + (arm_top - leg_h) / 2)))
+            parts.append(
+                _box((depth, arm_w, arm_top - leg_h), (0, sy * (length / 2 - arm_w / 2), leg_h + (arm_top - leg_h) / 2))
+            )
     if chaise:  # an L-shaped sofa: a lounge extension toward the front on the +Y side
         ext = rng.uniform(0.5, 0.8)
         wid = rng.uniform(0.6, 0.8)
-        parts.append(_box((ext, wid, base_h + cushion_t), (depth / 2 + ext / 2, length / 2 - wid / 2, leg_h + (base_h + cushion_t) / 2)))
+        parts.append(
+            _box(
+                (ext, wid, base_h + cushion_t),
+                (depth / 2 + ext / 2, length / 2 - wid / 2, leg_h + (base_h + cushion_t) / 2),
+            )
+        )
     if leg_h > 0.02:
         foot = _legs(rng, depth / 2, length / 2, leg_h, 0.06)
         parts += foot
@@ -400,7 +422,10 @@ def _monitor(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
         parts = [_box((thick, width, height), (0, 0, z_mid))]
     else:
         thick = width * rng.uniform(0.6, 0.9)
-        parts = [_box((0.08, width, height), (0, 0, z_mid)), _box((thick, width * 0.7, height * 0.7), (-thick / 2, 0, z_mid))]
+        parts = [
+            _box((0.08, width, height), (0, 0, z_mid)),
+            _box((thick, width * 0.7, height * 0.7), (-thick / 2, 0, z_mid)),
+        ]
     if kind == "crt":
         parts.append(_box((thick * 0.6, width * 0.5, 0.05), (-thick * 0.3, 0, 0.025)))
     elif stand == "neck":
@@ -444,7 +469,9 @@ def _vessel(rng: np.random.Generator) -> tuple[str, list[trimesh.Trimesh]]:
         for k in range(5):
             frac = (k + 0.5) / 5
             w = boom * (1 - frac)
-            parts.append(_box((w, 0.01 * beam, mast_h * 0.18), (mast_x - w / 2, 0, hull_h + 0.1 * mast_h + frac * mast_h * 0.85)))
+            parts.append(
+                _box((w, 0.01 * beam, mast_h * 0.18), (mast_x - w / 2, 0, hull_h + 0.1 * mast_h + frac * mast_h * 0.85))
+            )
     elif kind == "motorboat":
         cab = length * rng.uniform(0.2, 0.35)
         parts.append(_box((cab, beam * 0.7, hull_h * 0.6), (-length * 0.05, 0, hull_h * 1.3)))

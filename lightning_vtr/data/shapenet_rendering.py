@@ -66,7 +66,9 @@ def r2n2_to_viewpoints(azimuth: np.ndarray | Sequence[float], elevation: np.ndar
     azimuth = np.asarray(azimuth, dtype=np.float64).reshape(-1)
     elevation = np.asarray(elevation, dtype=np.float64).reshape(-1)
     if azimuth.shape != elevation.shape:
-        raise ValueError(f"`azimuth` and `elevation` must have the same length, got {azimuth.shape} and {elevation.shape}")
+        raise ValueError(
+            f"`azimuth` and `elevation` must have the same length, got {azimuth.shape} and {elevation.shape}"
+        )
     if np.any(np.abs(elevation) > 90.0):
         raise ValueError(f"`elevation` must be within [-90, 90] degrees, got values up to {np.abs(elevation).max()}")
     yaw = wrap_yaw(-azimuth).numpy()
@@ -177,7 +179,9 @@ class ShapeNetRenderingSource:
             return f"{voxel_path} does not exist"
         meta = read_rendering_metadata(meta_path)
         if np.any(meta[:, 2] != 0):
-            warnings.warn(f"{meta_path}: non-zero in-plane rotations are ignored (viewpoints have no roll)", stacklevel=3)
+            warnings.warn(
+                f"{meta_path}: non-zero in-plane rotations are ignored (viewpoints have no roll)", stacklevel=3
+            )
         images = [render_dir / f"{i:02d}.png" for i in range(len(meta))]
         absent = [p for p in images if not p.is_file()]
         if absent:

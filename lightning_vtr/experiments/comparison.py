@@ -35,8 +35,12 @@ def add_comparison_arguments(parser: argparse.ArgumentParser, model: str) -> arg
     add("--batch-size", type=int, default=8)
     add("--num-workers", type=int, default=0)
     add("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
-    add("--finetune-lr", default=FINETUNE_LR_SCHEDULES[0], choices=FINETUNE_LR_SCHEDULES,
-        help="fine-tuning learning rate: annealed to 0, or the model's own schedule")
+    add(
+        "--finetune-lr",
+        default=FINETUNE_LR_SCHEDULES[0],
+        choices=FINETUNE_LR_SCHEDULES,
+        help="fine-tuning learning rate: annealed to 0, or the model's own schedule",
+    )
     add("--seed", type=int, default=0)
     add("--accelerator", default="auto")
     add("--devices", default="1")

@@ -218,9 +218,7 @@ def _aggregate(values: list[float]) -> tuple[float, float]:
     return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
-def _table(
-    rows: dict[str, str], payloads: dict[str, dict[int, dict]], metrics: Sequence[str], seeds: list[int]
-) -> str:
+def _table(rows: dict[str, str], payloads: dict[str, dict[int, dict]], metrics: Sequence[str], seeds: list[int]) -> str:
     """A Table-1-layout Markdown table of ``rows`` (title -> run name); ``mean ± std`` with several seeds."""
     means: dict[str, dict[str, dict[str, float]]] = {}
     stds: dict[str, dict[str, dict[str, float]]] = {}
@@ -371,4 +369,3 @@ def run_report(config: ReportConfig) -> dict:
     _write_csv(paths["csv"], runs, payloads, seeds)
     _write_chart(paths["chart"], main_rows, payloads, seeds)
     return {"runs": payloads, "markdown": markdown, "paths": paths, "wall_seconds": wall, "total_wall_seconds": total}
-

@@ -120,9 +120,7 @@ def format_robustness_table(
             for m in metric_names
         ]
 
-    header = ["Method"] + [
-        f"{VIEW_SET_TITLES.get(s, s)} {_metric_title(m)}" for s in view_sets for m in metric_names
-    ]
+    header = ["Method"] + [f"{VIEW_SET_TITLES.get(s, s)} {_metric_title(m)}" for s in view_sets for m in metric_names]
     rows = [[method, *cells(method, per_set)] for method, per_set in results.items()]
     if fmt == "markdown":
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

@@ -185,7 +185,10 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
 def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConfig, run_dir: Path) -> dict:
     """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries)."""
     kwargs: dict[str, Any] = dict(
-        accelerator=config.accelerator, default_root_dir=str(run_dir), logger=False, enable_model_summary=False,
+        accelerator=config.accelerator,
+        default_root_dir=str(run_dir),
+        logger=False,
+        enable_model_summary=False,
         enable_progress_bar=False,
     )
     kwargs.update(config.trainer_kwargs)

@@ -24,9 +24,7 @@ DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5)
 
 def _check_pair(preds: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
     if not isinstance(preds, Tensor) or not isinstance(target, Tensor):
-        raise TypeError(
-            f"`preds` and `target` must be tensors, got {type(preds).__name__} and {type(target).__name__}"
-        )
+        raise TypeError(f"`preds` and `target` must be tensors, got {type(preds).__name__} and {type(target).__name__}")
     if preds.ndim != 4:
         raise ValueError(f"`preds` must have shape (B, R, R, R), got {tuple(preds.shape)}")
     if preds.shape != target.shape:
@@ -61,9 +59,7 @@ def check_thresholds(thresholds: Sequence[float], name: str = "thresholds") -> t
     return values
 
 
-def voxel_iou(
-    preds: Tensor, target: Tensor, thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS
-) -> Tensor:
+def voxel_iou(preds: Tensor, target: Tensor, thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS) -> Tensor:
     r"""Per-object voxel IoU at several thresholds.
 
     .. math::

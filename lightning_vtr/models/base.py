@@ -125,9 +125,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         check_type("images", images, Tensor, "torch.Tensor of shape (B, V, 3, H, W)")
         s = self.image_size
         if images.ndim != 5:
-            raise ValueError(
-                f"`images` must have shape (B, V, 3, {s}, {s}) (5 dimensions), got {tuple(images.shape)}"
-            )
+            raise ValueError(f"`images` must have shape (B, V, 3, {s}, {s}) (5 dimensions), got {tuple(images.shape)}")
         b, v, c, h, w = images.shape
         if c != 3:
             raise ValueError(f"`images` must have 3 (RGB) channels in dim 2, got {c} (shape {tuple(images.shape)})")
@@ -144,8 +142,11 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         """Raise ``ValueError`` if ``voxels`` is not a ``(B, R, R, R)`` target for this model."""
         r = self.voxel_resolution
         expected = (batch_size if batch_size is not None else "B", r, r, r)
-        if not isinstance(voxels, Tensor) or voxels.ndim != 4 or tuple(voxels.shape[1:]) != (r, r, r) or (
-            batch_size is not None and voxels.shape[0] != batch_size
+        if (
+            not isinstance(voxels, Tensor)
+            or voxels.ndim != 4
+            or tuple(voxels.shape[1:]) != (r, r, r)
+            or (batch_size is not None and voxels.shape[0] != batch_size)
         ):
             actual = tuple(voxels.shape) if isinstance(voxels, Tensor) else type(voxels).__name__
             raise ValueError(f"`voxels` must have shape {expected}, got {actual}")

@@ -39,6 +39,7 @@ __all__ = [
     "dice_loss",
 ]
 
+
 def _int_tuple(name: str, values: Sequence[int], minimum: int) -> tuple[int, ...]:
     """``values`` as a tuple of ints ``>= minimum``; the messages name ``name[i]``."""
     try:
@@ -102,10 +103,14 @@ class LRGTSpec:
             check_int(name, getattr(self, name), minimum=1)
         blocks = _int_tuple("grouping_blocks", self.grouping_blocks, minimum=0)
         if any(i >= self.depth for i in blocks):
-            raise ValueError(f"`grouping_blocks` must be 0-based block indices in [0, {self.depth}), got {list(blocks)}")
+            raise ValueError(
+                f"`grouping_blocks` must be 0-based block indices in [0, {self.depth}), got {list(blocks)}"
+            )
         # Frozen: normalise the sequences (lists from a config or a checkpoint) through object.__setattr__.
         object.__setattr__(self, "grouping_blocks", blocks)
-        object.__setattr__(self, "upsample_channels", _int_tuple("upsample_channels", self.upsample_channels, minimum=1))
+        object.__setattr__(
+            self, "upsample_channels", _int_tuple("upsample_channels", self.upsample_channels, minimum=1)
+        )
 
     @property
     def grid_size(self) -> int:
@@ -236,12 +241,13 @@ class LongRangeGroupingAttention(Attention):
         npre = t - self.grid_size**2
         if npre < 0 or bv % num_views != 0:
             raise ValueError(
-                f"`x` must be (B * {num_views}, prefix + {self.grid_size ** 2}, D) tokens, got {tuple(x.shape)}"
+                f"`x` must be (B * {num_views}, prefix + {self.grid_size**2}, D) tokens, got {tuple(x.shape)}"
             )
         q, k, v = self.split_heads(x)
         # 1. patch tokens: attention inside each residue group, across views.
         qp, kp, vp = (self._to_groups(z[:, :, npre:], num_views) for z in (q, k, v))
         patches = self._from_groups(F.scaled_dot_product_attention(qp, kp, vp), num_views)
+
         # 2. prefix tokens of all views of a sample together.
         def to_prefix_group(z: Tensor) -> Tensor:
             h, d = z.shape[1], z.shape[3]
@@ -466,7 +472,9 @@ class LRGTNetwork(nn.Module):
             upsample_channels=upsample_channels,
         )
         self.spec = spec
-        self.encoder = DistilledVisionTransformer(spec.image_size, spec.patch_size, spec.embed_dim, spec.depth, spec.num_heads)
+        self.encoder = DistilledVisionTransformer(
+            spec.image_size, spec.patch_size, spec.embed_dim, spec.depth, spec.num_heads
+        )
         self.grouping_blocks = spec.grouping_blocks
         for i in self.grouping_blocks:
             old = self.encoder.blocks[i].attn
@@ -592,10 +600,34 @@ class LRGT(VoxelReconstructionModule):
         # save_hyperparameters() reads the arguments' current values, so resolve them first: the
         # checkpoint then describes the architecture fully, and the DataModule's `image_size`
         # hparam agrees with ours when Lightning merges the two for logging.
-        (image_size, patch_size, embed_dim, depth, num_heads, group_stride, num_merged_tokens, merger_k,
-         decoder_depth, decoder_heads, query_grid) = (getattr(spec, k) for k in (
-            "image_size", "patch_size", "embed_dim", "depth", "num_heads", "group_stride", "num_merged_tokens",
-            "merger_k", "decoder_depth", "decoder_heads", "query_grid"))
+        (
+            image_size,
+            patch_size,
+            embed_dim,
+            depth,
+            num_heads,
+            group_stride,
+            num_merged_tokens,
+            merger_k,
+            decoder_depth,
+            decoder_heads,
+            query_grid,
+        ) = (
+            getattr(spec, k)
+            for k in (
+                "image_size",
+                "patch_size",
+                "embed_dim",
+                "depth",
+                "num_heads",
+                "group_stride",
+                "num_merged_tokens",
+                "merger_k",
+                "decoder_depth",
+                "decoder_heads",
+                "query_grid",
+            )
+        )
         grouping_blocks, upsample_channels = list(spec.grouping_blocks), list(spec.upsample_channels)
         self.save_hyperparameters()
         self.spec = spec

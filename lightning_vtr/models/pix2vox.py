@@ -122,7 +122,9 @@ class _Encoder(nn.Module):
 
 def _tconv3d(c_in: int, c_out: int) -> nn.Sequential:
     return nn.Sequential(
-        nn.ConvTranspose3d(c_in, c_out, 4, stride=2, padding=1, bias=False), nn.BatchNorm3d(c_out), nn.ReLU(inplace=True)
+        nn.ConvTranspose3d(c_in, c_out, 4, stride=2, padding=1, bias=False),
+        nn.BatchNorm3d(c_out),
+        nn.ReLU(inplace=True),
     )
 
 
@@ -187,7 +189,9 @@ class _Refiner(nn.Module):
         self.down1, self.down2, self.down3 = down(1, c1), down(c1, c2), down(c2, c3)
         self._bottleneck = (c3, 4, 4, 4)
         flat = c3 * 64
-        self.fc = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, flat), nn.ReLU(inplace=True))
+        self.fc = nn.Sequential(
+            nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, flat), nn.ReLU(inplace=True)
+        )
         self.up1, self.up2 = _tconv3d(c3, c2), _tconv3d(c2, c1)
         self.up3 = nn.Sequential(nn.ConvTranspose3d(c1, 1, 4, stride=2, padding=1, bias=False), nn.Sigmoid())
 
@@ -270,7 +274,9 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         self.encoder = _Encoder(spec)
         seed_channels = spec.encoder_channels[-1] * spec.feature_size**2
         if seed_channels % 8:
-            raise ValueError(f"preset {preset!r}: encoder output {seed_channels} values cannot be reshaped to (C, 2, 2, 2)")
+            raise ValueError(
+                f"preset {preset!r}: encoder output {seed_channels} values cannot be reshaped to (C, 2, 2, 2)"
+            )
         self.decoder = _Decoder(seed_channels // 8, spec.decoder_channels)
         self.merger = _ContextAwareMerger(spec.decoder_channels[-1] + 1, spec.merger_stride)
         self.refiner = _Refiner(spec.refiner_channels, spec.refiner_hidden)
@@ -305,7 +311,12 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         hp = self.hparams
         groups = [
             {"params": [p for p in module.parameters() if p.requires_grad], "lr": lr}
-            for module, lr in ((self.encoder, hp.lr), (self.decoder, hp.lr), (self.merger, hp.merger_lr), (self.refiner, hp.lr))
+            for module, lr in (
+                (self.encoder, hp.lr),
+                (self.decoder, hp.lr),
+                (self.merger, hp.merger_lr),
+                (self.refiner, hp.lr),
+            )
         ]
         optimizer = torch.optim.Adam([g for g in groups if g["params"]], betas=tuple(hp.betas))
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=list(hp.milestones), gamma=hp.gamma)

@@ -46,9 +46,7 @@ class PatchEmbed(nn.Module):
 
     def forward(self, images: Tensor) -> Tensor:
         if images.shape[-2:] != (self.image_size, self.image_size):
-            raise ValueError(
-                f"`images` must be {self.image_size}x{self.image_size}, got {tuple(images.shape[-2:])}"
-            )
+            raise ValueError(f"`images` must be {self.image_size}x{self.image_size}, got {tuple(images.shape[-2:])}")
         return self.proj(images).flatten(2).transpose(1, 2)
 
 
@@ -263,7 +261,9 @@ def load_timm_deit(
             f"unexpected {unexpected[:8]}{' ...' if len(unexpected) > 8 else ''} ({len(unexpected)} keys)"
         )
     mismatched = [
-        f"{k}: expected {tuple(own[k].shape)}, got {tuple(v.shape)}" for k, v in state.items() if v.shape != own[k].shape
+        f"{k}: expected {tuple(own[k].shape)}, got {tuple(v.shape)}"
+        for k, v in state.items()
+        if v.shape != own[k].shape
     ]
     if mismatched:
         raise ValueError("DeiT checkpoint shapes do not match the encoder: " + "; ".join(mismatched))

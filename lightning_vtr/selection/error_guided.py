@@ -115,14 +115,18 @@ class ErrorGuidedSelector(ViewSelector):
         self.score = check_choice("score", score, SCORES)
         self.threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
         self.min_separation = (
-            None if min_separation is None else check_float("min_separation", min_separation, minimum=0.0, maximum=180.0)
+            None
+            if min_separation is None
+            else check_float("min_separation", min_separation, minimum=0.0, maximum=180.0)
         )
         self.temperature = None if temperature is None else check_float("temperature", temperature, minimum=0.0)
         default_mode, default_mask, default_reduction = SCORES[score]
         self.mode = check_choice("mode", default_mode if mode is None else mode, ("binary", "soft"))
         mask = default_mask if mask is None else check_choice("mask", mask, ("gt", "none"))
         self.mask = None if mask == "none" else mask
-        self.reduction = check_choice("reduction", default_reduction if reduction is None else reduction, ("sum", "mean"))
+        self.reduction = check_choice(
+            "reduction", default_reduction if reduction is None else reduction, ("sum", "mean")
+        )
         self.sigma = self.k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)
         self.fallback = check_choice("fallback", fallback, ("area", "angle"))
         self.eps = check_float("eps", eps, minimum=0.0, maximum=1.0, max_open=True)

@@ -83,7 +83,11 @@ class NatureSelector(ViewSelector):
         check_categories(categories, batch)
         # yaw uniform in the range; the pitch column of this draw is reused as the jitter's uniform
         draw = sample_uniform_viewpoints(
-            batch * self.num_views, mode="angle", yaw_range=self.yaw_range, pitch_range=(-90.0, 90.0), generator=generator
+            batch * self.num_views,
+            mode="angle",
+            yaw_range=self.yaw_range,
+            pitch_range=(-90.0, 90.0),
+            generator=generator,
         ).view(batch, self.num_views, 2)
         centre = torch.tensor([self.pitch_for(c) for c in categories], dtype=draw.dtype).view(batch, 1)
         pitch = clamp_pitch(centre + self.pitch_jitter * draw[..., 1] / 90.0)

@@ -129,4 +129,3 @@ def plot_pool_distribution(pool: ViewpointPool, path: str | Path = "viewpoint_po
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80)
     return {"path": path, "figure": fig, "categories": categories, "points": points}
-

@@ -107,9 +107,7 @@ class ViewpointPool:
         return f"{type(self).__name__}(capacity={self.capacity}, num_views={self.num_views}, sets={len(self)})"
 
     # ------------------------------------------------------------------------------------ sampling
-    def sample(
-        self, category: str, object_id: str | None = None, generator: torch.Generator | None = None
-    ) -> Tensor:
+    def sample(self, category: str, object_id: str | None = None, generator: torch.Generator | None = None) -> Tensor:
         """One view set ``(num_views, 2)`` in degrees for an object of ``category``.
 
         Prefers sets found on objects other than ``object_id``; falls back to the object's own sets,
@@ -177,7 +175,8 @@ class ViewpointPool:
         """Write :meth:`state_dict` as human-readable JSON (viewpoints as nested lists of degrees)."""
         state = self.state_dict()
         state["entries"] = {
-            cat: {"object_ids": e["object_ids"], "viewpoints": e["viewpoints"].tolist()} for cat, e in state["entries"].items()
+            cat: {"object_ids": e["object_ids"], "viewpoints": e["viewpoints"].tolist()}
+            for cat, e in state["entries"].items()
         }
         Path(path).write_text(json.dumps(state, indent=1))
 

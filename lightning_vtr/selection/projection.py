@@ -45,6 +45,7 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "check_volume_pair",
+    "clear_projection_cache",
     "check_volumes",
     "error_projection",
     "error_volume",
@@ -224,7 +225,14 @@ def _projection_table(
     return table
 
 
-def _first_hit_keys(occupied: Tensor, resolution: int, viewpoints: Tensor, image_size: int, half_extent: float) -> Tensor:
+def clear_projection_cache() -> None:
+    """Drop the cached projection tables (the next call rebuilds them; benchmarks time that build)."""
+    _table_cache.clear()
+
+
+def _first_hit_keys(
+    occupied: Tensor, resolution: int, viewpoints: Tensor, image_size: int, half_extent: float
+) -> Tensor:
     """Smallest first-hit key per ``(object, view, pixel)`` for ``occupied (B, N)`` bool voxels.
 
     Returns ``(B, V, S^2)``; ``iinfo(dtype).max`` where nothing is hit.

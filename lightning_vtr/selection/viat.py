@@ -224,7 +224,9 @@ class VIATSelector(ViewSelector):
     def distribution(self, category: str) -> dict[str, Tensor]:
         """A category's mixture: ``weights (K,)``, ``means (K, 2)`` in degrees and pre-tanh ``std (K, 2)``."""
         if category not in self._mixtures:
-            raise KeyError(f"VIATSelector has no distribution for category {category!r}; known: {sorted(self._mixtures)}")
+            raise KeyError(
+                f"VIATSelector has no distribution for category {category!r}; known: {sorted(self._mixtures)}"
+            )
         mix = self._mixtures[category]
         with torch.no_grad():
             return {
@@ -236,7 +238,9 @@ class VIATSelector(ViewSelector):
     def sample_viewpoints(self, category: str, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``(n, 2)`` adversarial viewpoints in degrees drawn from a category's current distribution."""
         if category not in self._mixtures:
-            raise KeyError(f"VIATSelector has no distribution for category {category!r}; known: {sorted(self._mixtures)}")
+            raise KeyError(
+                f"VIATSelector has no distribution for category {category!r}; known: {sorted(self._mixtures)}"
+            )
         return _to_viewpoints(self._mixtures[category].sample(n, generator))
 
     def state_dict(self) -> dict[str, Any]:
@@ -310,7 +314,7 @@ class VIATSelector(ViewSelector):
             zc = z[name]
             with torch.no_grad():
                 # log p(u) on the normalised square u = tanh(z): change of variables from z.
-                log_p_u = mix.log_prob(zc) - torch.log1p(-torch.tanh(zc) ** 2).sum(-1)
+                log_p_u = mix.log_prob(zc) - torch.log1p(-(torch.tanh(zc) ** 2)).sum(-1)
             fitness = loss - self.entropy_weight * log_p_u
             utilities = _nes_utilities(fitness)
             mix.optimizer.zero_grad()

@@ -137,4 +137,3 @@ def nearest_source_view(source_viewpoints: Tensor, target_viewpoints: Tensor) ->
     # float64 keeps acos well conditioned near 0 so nearly equal distances still rank correctly
     dist = angular_distance(src.double()[None, :, :], tgt.double()[:, None, :])  # (T, S)
     return dist.argmin(dim=1) if dist.shape[0] else torch.zeros(0, dtype=torch.long)
-

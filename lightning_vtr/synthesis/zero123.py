@@ -602,8 +602,10 @@ class Zero123Synthesizer(Synthesizer):
             source_images, source_viewpoints, target_viewpoints, seeds, steps, guidance, eta, output_size, output_type
         )
         if not images:
-            return torch.zeros(0, 3, self.resolution, self.resolution) if output_type == "pt" else np.zeros(
-                (0, output_size, output_size, 4), dtype=np.uint8
+            return (
+                torch.zeros(0, 3, self.resolution, self.resolution)
+                if output_type == "pt"
+                else np.zeros((0, output_size, output_size, 4), dtype=np.uint8)
             )
         self._place()
 

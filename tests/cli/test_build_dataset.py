@@ -41,14 +41,38 @@ def test_layout_and_up_axis_choices_are_the_data_constants():
 
 
 def test_options_given_and_defaults(builds, tmp_path, capsys):
-    argv = ["build-dataset", str(tmp_path), "--categories", "chair,table", "--image-size", "32", "--shard", "1/4",
-            "--layout", "generic", "--up-axis", "y", "--split", "0.5,0.25,0.25", "--workers", "2", "--no-progress"]
+    argv = [
+        "build-dataset",
+        str(tmp_path),
+        "--categories",
+        "chair,table",
+        "--image-size",
+        "32",
+        "--shard",
+        "1/4",
+        "--layout",
+        "generic",
+        "--up-axis",
+        "y",
+        "--split",
+        "0.5,0.25,0.25",
+        "--workers",
+        "2",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     output, kwargs = builds[-1]
     assert output == tmp_path
     assert kwargs == {
-        "source": "procedural", "split": (0.5, 0.25, 0.25), "workers": 2, "shard": (1, 4), "progress": False,
-        "source_layout": "generic", "up_axis": "y", "categories": ["chair", "table"], "image_size": 32,
+        "source": "procedural",
+        "split": (0.5, 0.25, 0.25),
+        "workers": 2,
+        "shard": (1, 4),
+        "progress": False,
+        "source_layout": "generic",
+        "up_axis": "y",
+        "categories": ["chair", "table"],
+        "image_size": 32,
     }
     assert "Shard 1/4 done" in capsys.readouterr().out
 
@@ -72,3 +96,41 @@ def test_errors_print_one_line(builds, capsys, tmp_path):
         main(["build-dataset", str(tmp_path), "--layout", "shapenet_v3"])
     assert exit_info.value.code == 2 and "invalid choice: 'shapenet_v3'" in capsys.readouterr().err
     assert builds == []
+
+
+# ------------------------------------------------------------------------------------------ end to end
+
+
+def test_cli_build_and_info(tmp_path, capsys):
+    out = tmp_path / "cli"
+    args = [
+        "build-dataset",
+        str(out),
+        "--categories",
+        "bench",
+        "--objects-per-category",
+        "2",
+        "--image-size",
+        "16",
+        "--views-per-set",
+        "2",
+        "--no-progress",
+    ]
+    assert main(args) == 0
+    assert "bench" in capsys.readouterr().out
+    assert main(["dataset-info", str(out)]) == 0
+    line = next(row for row in capsys.readouterr().out.splitlines() if row.split()[:1] == ["bench"])
+    assert line.split()[1:] == ["1", "0", "1", "2"]
+    assert main(args) == 0 and "skipped 2" in capsys.readouterr().out
+
+
+def test_cli_errors(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["build-dataset", str(tmp_path), "--shard", "3/2"])
+    assert exc.value.code == 2 and "0 <= i < n" in capsys.readouterr().err
+    assert main(["build-dataset", str(tmp_path), "--source", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert main(["dataset-info", str(tmp_path)]) == 2
+    assert "build-dataset" in capsys.readouterr().err
+    assert main(["build-dataset", str(tmp_path / "x"), "--finalize"]) == 2
+    assert "build_config.json" in capsys.readouterr().err

@@ -32,11 +32,16 @@ def test_print_config_resolves_the_callback_and_model(capsys):
 def test_fit_from_the_config_generates_samples(tiny_dataset, tmp_path):
     main(
         [
-            "fit", "--config", str(CONFIG),
+            "fit",
+            "--config",
+            str(CONFIG),
             f"--data.root={tiny_dataset}",
             f"--trainer.default_root_dir={tmp_path}",
-            "--trainer.max_epochs=2", "--trainer.limit_train_batches=1", "--trainer.limit_val_batches=1",
-            "--trainer.logger=false", "--trainer.enable_progress_bar=false",
+            "--trainer.max_epochs=2",
+            "--trainer.limit_train_batches=1",
+            "--trainer.limit_val_batches=1",
+            "--trainer.logger=false",
+            "--trainer.enable_progress_bar=false",
         ]
     )
     records = sorted((tmp_path / "vtr_selection").glob("epoch_*.json"))
@@ -47,8 +52,13 @@ def test_fit_from_the_config_generates_samples(tiny_dataset, tmp_path):
 def test_the_class_alone_has_the_package_defaults(tmp_path):
     cli = VTRLightningCLI(
         run=False,
-        args=["--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus", "--model.preset=tiny", f"--data.root={tmp_path}",
-              "--trainer.logger=false", "--trainer.enable_checkpointing=false"],
+        args=[
+            "--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus",
+            "--model.preset=tiny",
+            f"--data.root={tmp_path}",
+            "--trainer.logger=false",
+            "--trainer.enable_checkpointing=false",
+        ],
     )
     assert isinstance(cli.model, Pix2VoxPlusPlus)  # any VoxelReconstructionModule subclass
     assert isinstance(cli.datamodule, VTRDataModule)

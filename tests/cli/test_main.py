@@ -9,10 +9,10 @@ import pytest
 
 import lightning_vtr.cli.lightning as lightning_cli
 from lightning_vtr.cli import main
-from lightning_vtr.cli.main import COMMANDS, build_parser
+from lightning_vtr.cli.dispatch import COMMANDS, build_parser
 
-# `lightning_vtr.cli.main` as an attribute is the function the package exports; the module is this one.
-MAIN_MODULE = importlib.import_module("lightning_vtr.cli.main")
+# The dispatcher module (`lightning_vtr.cli.main` is the function the package exports).
+MAIN_MODULE = importlib.import_module("lightning_vtr.cli.dispatch")
 
 
 def _subcommands(parser):

@@ -34,15 +34,40 @@ def test_choices_are_the_registries():
 
 
 def test_cli_builds_the_report_config(captured):
-    argv = ["report", "--seeds", "0", "1", "--strategies", "none,viat", "--no-ablations", "--fraction", "0.1",
-            "--pretrain-epochs", "3", "--out", "somewhere", "--finetune-lr", "constant", "--devices", "2",
-            "--model", "lrgt", "--data", "/data/vtr"]
+    argv = [
+        "report",
+        "--seeds",
+        "0",
+        "1",
+        "--strategies",
+        "none,viat",
+        "--no-ablations",
+        "--fraction",
+        "0.1",
+        "--pretrain-epochs",
+        "3",
+        "--out",
+        "somewhere",
+        "--finetune-lr",
+        "constant",
+        "--devices",
+        "2",
+        "--model",
+        "lrgt",
+        "--data",
+        "/data/vtr",
+    ]
     assert main(argv) == 0
     config = captured[-1]
     assert isinstance(config, ReportConfig)
     assert (config.seeds, config.strategies, config.ablations) == ([0, 1], ["none", "viat"], [])
     assert config.experiment == default_experiment(
-        model="lrgt", data="/data/vtr", fraction=0.1, pretrain_epochs=3, out="somewhere", finetune_lr="constant",
+        model="lrgt",
+        data="/data/vtr",
+        fraction=0.1,
+        pretrain_epochs=3,
+        out="somewhere",
+        finetune_lr="constant",
         devices=2,
     )
     assert config.command == "lightning-vtr " + " ".join(argv)

@@ -70,8 +70,14 @@ def test_header_translate_scale_are_written(tmp_path):
 
 def test_y_up_conversion_matches_mesh_conversion(tmp_path):
     # A chiral, non-grid-aligned shape in a +Y-up frame (ShapeNet style).
-    boxes = [((0.8, 0.17, 0.23), (0.1, 0.02, -0.05)), ((0.19, 0.57, 0.21), (-0.2, 0.2, 0.07)), ((0.15, 0.2, 0.41), (0.25, -0.1, 0.2))]
-    mesh_y_up = normalize_mesh(trimesh.util.concatenate([trimesh.creation.box(extents=e).apply_translation(c) for e, c in boxes]))
+    boxes = [
+        ((0.8, 0.17, 0.23), (0.1, 0.02, -0.05)),
+        ((0.19, 0.57, 0.21), (-0.2, 0.2, 0.07)),
+        ((0.15, 0.2, 0.41), (0.25, -0.1, 0.2)),
+    ]
+    mesh_y_up = normalize_mesh(
+        trimesh.util.concatenate([trimesh.creation.box(extents=e).apply_translation(c) for e, c in boxes])
+    )
     mesh_y_up.apply_translation([0.013, -0.007, 0.011])  # avoid faces on voxel boundaries
     path = tmp_path / "model.binvox"
     write_binvox(path, voxelize(mesh_y_up, 16))  # a ShapeNetVox32-like file: stored in the +Y-up frame

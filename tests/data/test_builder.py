@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from lightning_vtr.cli import main
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.builder import build_dataset, ensure_embedded_dataset, finalize_dataset, view_set_viewpoints
 from lightning_vtr.data.format import load_metadata, object_dir, scan_dataset
@@ -40,9 +39,15 @@ def test_aligned_view_set_hand_computed():
 
 def test_random_view_sets_are_seeded_per_object_and_area_uniform():
     a = view_set_viewpoints("chair", "chair_0001", views_per_set=24, seed=0)
-    np.testing.assert_array_equal(a["spherical"], view_set_viewpoints("chair", "chair_0001", views_per_set=24, seed=0)["spherical"])
-    assert not np.allclose(a["spherical"], view_set_viewpoints("chair", "chair_0002", views_per_set=24, seed=0)["spherical"])
-    assert not np.allclose(a["hemispherical"], view_set_viewpoints("chair", "chair_0001", views_per_set=24, seed=1)["hemispherical"])
+    np.testing.assert_array_equal(
+        a["spherical"], view_set_viewpoints("chair", "chair_0001", views_per_set=24, seed=0)["spherical"]
+    )
+    assert not np.allclose(
+        a["spherical"], view_set_viewpoints("chair", "chair_0002", views_per_set=24, seed=0)["spherical"]
+    )
+    assert not np.allclose(
+        a["hemispherical"], view_set_viewpoints("chair", "chair_0001", views_per_set=24, seed=1)["hemispherical"]
+    )
     big = view_set_viewpoints("chair", "chair_0001", views_per_set=20000)
     hemi, sphere = big["hemispherical"], big["spherical"]
     assert hemi[:, 1].min() >= 0 and hemi[:, 1].max() <= 90 and sphere[:, 1].min() >= -90
@@ -82,7 +87,9 @@ def test_voxels_and_images_match_the_object(small):
 
     root, _ = small
     mesh = make_object("chair", 1)
-    np.testing.assert_array_equal(read_binvox(object_dir(root, "chair", "chair_0001") / "model.binvox"), voxelize(mesh, 32))
+    np.testing.assert_array_equal(
+        read_binvox(object_dir(root, "chair", "chair_0001") / "model.binvox"), voxelize(mesh, 32)
+    )
     record = next(r for r in scan_dataset(root) if r.object_id == "chair_0001")
     paths, viewpoints = record.views["hemispherical"]
     expected = get_renderer(32).render(mesh, viewpoints)
@@ -214,7 +221,9 @@ def test_invalid_arguments(tmp_path):
         build_dataset(tmp_path, image_size=64.0)
     with pytest.raises(ValueError, match=r"`views_per_set` must be an int in \[1, 100\], got 101"):
         build_dataset(tmp_path, views_per_set=101)
-    with pytest.raises(ValueError, match=r"`source_layout` must be one of 'auto', 'shapenet_v1', 'shapenet_v2', 'generic'"):
+    with pytest.raises(
+        ValueError, match=r"`source_layout` must be one of 'auto', 'shapenet_v1', 'shapenet_v2', 'generic'"
+    ):
         build_dataset(tmp_path, source_layout="flat")
     with pytest.raises(ValueError, match=r"`up_axis` must be one of None, 'y', 'z', got 'x'"):
         build_dataset(tmp_path, up_axis="x")
@@ -231,32 +240,6 @@ def test_ensure_embedded_dataset_builds_once(tmp_path, monkeypatch):
     stamp = (root / "metadata.json").stat().st_mtime_ns
     assert ensure_embedded_dataset(**opts) == root and (root / "metadata.json").stat().st_mtime_ns == stamp
     assert ensure_embedded_dataset(**{**opts, "image_size": 24}) != root  # other options, other directory
-
-
-# ------------------------------------------------------------------------------------------ CLI
-
-
-def test_cli_build_and_info(tmp_path, capsys):
-    out = tmp_path / "cli"
-    args = ["build-dataset", str(out), "--categories", "bench", "--objects-per-category", "2", "--image-size", "16", "--views-per-set", "2", "--no-progress"]
-    assert main(args) == 0
-    assert "bench" in capsys.readouterr().out
-    assert main(["dataset-info", str(out)]) == 0
-    line = next(l for l in capsys.readouterr().out.splitlines() if l.split()[:1] == ["bench"])
-    assert line.split()[1:] == ["1", "0", "1", "2"]
-    assert main(args) == 0 and "skipped 2" in capsys.readouterr().out
-
-
-def test_cli_errors(tmp_path, capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(["build-dataset", str(tmp_path), "--shard", "3/2"])
-    assert exc.value.code == 2 and "0 <= i < n" in capsys.readouterr().err
-    assert main(["build-dataset", str(tmp_path), "--source", str(tmp_path / "nope")]) == 2
-    assert "nope" in capsys.readouterr().err
-    assert main(["dataset-info", str(tmp_path)]) == 2
-    assert "build-dataset" in capsys.readouterr().err
-    assert main(["build-dataset", str(tmp_path / "x"), "--finalize"]) == 2
-    assert "build_config.json" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -27,7 +27,9 @@ def _sample(dm, index=0, fill=0):
     images = np.zeros((3, 16, 16, 4), np.uint8)
     images[..., 0] = fill
     images[..., 3] = 255
-    return GeneratedSample(rec.category, rec.object_id, images, np.array([[10.0, 20.0], [-30.0, 45.0], [170.0, -80.0]]), 0)
+    return GeneratedSample(
+        rec.category, rec.object_id, images, np.array([[10.0, 20.0], [-30.0, 45.0], [170.0, -80.0]]), 0
+    )
 
 
 def test_splits_follow_7_1_2_per_category(tiny_dataset):
@@ -137,7 +139,9 @@ def test_bad_arguments_are_named(tiny_dataset):
         VTRDataModule(str(tiny_dataset), max_generated=-1)
     with pytest.raises(ValueError, match="`shapenet_rendering` must be None when `root`"):
         VTRDataModule(str(tiny_dataset), shapenet_rendering={})
-    with pytest.raises(ValueError, match=r"`shapenet_rendering` must have the keys.*missing \['split_file', 'voxel_root'\]"):
+    with pytest.raises(
+        ValueError, match=r"`shapenet_rendering` must have the keys.*missing \['split_file', 'voxel_root'\]"
+    ):
         VTRDataModule(shapenet_rendering={"rendering_root": "r"})
     with pytest.raises(ValueError, match="categories"):
         _dm(tiny_dataset, categories=["spaceship"])

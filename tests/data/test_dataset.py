@@ -34,7 +34,11 @@ def test_image_transform_composites_on_the_background_and_scales():
     [
         ({"image_size": 0}, ValueError, r"`image_size` must be an int >= 1, got 0"),
         ({"image_size": 32.0}, TypeError, r"`image_size` must be an int, got float 32.0"),
-        ({"background": (1, 2)}, ValueError, r"`background` must be three ints \(R, G, B\) in \[0, 255\], got \(1, 2\)"),
+        (
+            {"background": (1, 2)},
+            ValueError,
+            r"`background` must be three ints \(R, G, B\) in \[0, 255\], got \(1, 2\)",
+        ),
         ({"background": (0, 0, 300)}, ValueError, r"`background\[2\]` must be an int in \[0, 255\], got 300"),
         ({"background": 255}, TypeError, r"`background` must be a sequence of three ints"),
         ({"normalize": "unit"}, ValueError, r"`normalize` must be one of 'imagenet', None, got 'unit'"),

@@ -66,7 +66,11 @@ def test_atomic_write_json_round_trip_leaves_no_temporary(tmp_path):
 
 def test_scan_dataset_records(root):
     records = scan_dataset(root, check_files=True)
-    assert [(r.category, r.object_id, r.split) for r in records] == [("chair", "c0", "train"), ("chair", "c1", "test"), ("table", "t0", "val")]
+    assert [(r.category, r.object_id, r.split) for r in records] == [
+        ("chair", "c0", "train"),
+        ("chair", "c1", "test"),
+        ("table", "t0", "val"),
+    ]
     r = records[0]
     assert r.key == "chair/c0" and r.voxel_up_axis == "z"
     assert r.voxel_path == root / "objects" / "chair" / "c0" / "model.binvox"

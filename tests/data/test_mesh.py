@@ -28,8 +28,12 @@ def test_formats_load_and_normalise(tmp_path, ext):
 
 def test_scene_graph_transforms_are_applied_when_merging(tmp_path):
     scene = trimesh.Scene()
-    scene.add_geometry(_box((1.0, 1.0, 1.0)), node_name="a", transform=trimesh.transformations.translation_matrix([3, 0, 0]))
-    scene.add_geometry(_box((1.0, 1.0, 1.0)), node_name="b", transform=trimesh.transformations.translation_matrix([0, 0, 5]))
+    scene.add_geometry(
+        _box((1.0, 1.0, 1.0)), node_name="a", transform=trimesh.transformations.translation_matrix([3, 0, 0])
+    )
+    scene.add_geometry(
+        _box((1.0, 1.0, 1.0)), node_name="b", transform=trimesh.transformations.translation_matrix([0, 0, 5])
+    )
     path = tmp_path / "scene.glb"
     scene.export(path)
     out = load_mesh(path, up_axis="z", normalize=False)

@@ -44,7 +44,11 @@ def layout(tmp_path):
             (vox_root / tid / model).mkdir(parents=True)
             write_binvox(vox_root / tid / model / "model.binvox", grids[model], up_axis="z")  # stored as made (Y up)
     split = [
-        {"taxonomy_id": tid, "taxonomy_name": name, **{s: [m for m in models if SPLIT[m] == s] for s in ("train", "val", "test")}}
+        {
+            "taxonomy_id": tid,
+            "taxonomy_name": name,
+            **{s: [m for m in models if SPLIT[m] == s] for s in ("train", "val", "test")},
+        }
         for tid, name, models in TAXONOMIES
     ]
     split_file = tmp_path / "ShapeNet.json"
@@ -66,7 +70,9 @@ def test_conversion_matches_blender_rig():
     expected = np.stack([_blender_camera_position(a, e) for a, e in zip(az, el)])
     np.testing.assert_allclose(camera_center(vp).numpy(), expected, atol=1e-6)
     # Hand-computed: azimuth 90 is yaw -90 (camera on -Y); azimuth 270 is yaw 90; azimuth 0 is yaw 0.
-    np.testing.assert_allclose(r2n2_to_viewpoints([0, 90, 270, 180], [30, 25, 28.5, 26]), [[0, 30], [-90, 25], [90, 28.5], [-180, 26]])
+    np.testing.assert_allclose(
+        r2n2_to_viewpoints([0, 90, 270, 180], [30, 25, 28.5, 26]), [[0, 30], [-90, 25], [90, 28.5], [-180, 26]]
+    )
     assert np.all((vp[:, 0] >= -180) & (vp[:, 0] < 180))
 
 

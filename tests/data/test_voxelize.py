@@ -50,10 +50,14 @@ def test_sphere_is_solid_and_close_to_its_volume():
 
 def test_overlapping_parts_stay_solid():
     # Two intersecting closed boxes: ray parity would call their overlap "outside".
-    union = trimesh.util.concatenate([_box((0.6, 0.2, 0.2), (0.01, 0.01, 0.01)), _box((0.2, 0.6, 0.2), (0.01, 0.01, 0.01))])
+    union = trimesh.util.concatenate(
+        [_box((0.6, 0.2, 0.2), (0.01, 0.01, 0.01)), _box((0.2, 0.6, 0.2), (0.01, 0.01, 0.01))]
+    )
     vox = voxelize(union, 20)
     assert vox[10, 10, 10]  # the centre lies inside both boxes
-    reference = voxelize(_box((0.6, 0.2, 0.2), (0.01, 0.01, 0.01)), 20) | voxelize(_box((0.2, 0.6, 0.2), (0.01, 0.01, 0.01)), 20)
+    reference = voxelize(_box((0.6, 0.2, 0.2), (0.01, 0.01, 0.01)), 20) | voxelize(
+        _box((0.2, 0.6, 0.2), (0.01, 0.01, 0.01)), 20
+    )
     np.testing.assert_array_equal(vox, reference)
 
 
@@ -67,7 +71,9 @@ def test_flipped_faces_and_small_holes_do_not_matter():
     holed = trimesh.creation.icosphere(subdivisions=5, radius=0.4)
     holed.update_faces(np.arange(len(holed.faces)) != 0)  # one triangle ~0.02 wide, below the cell size 1/16
     assert not holed.is_watertight
-    np.testing.assert_array_equal(voxelize(holed, 16), voxelize(trimesh.creation.icosphere(subdivisions=5, radius=0.4), 16))
+    np.testing.assert_array_equal(
+        voxelize(holed, 16), voxelize(trimesh.creation.icosphere(subdivisions=5, radius=0.4), 16)
+    )
 
 
 def test_open_shape_stays_open_and_thin_parts_survive():

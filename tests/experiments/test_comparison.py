@@ -43,7 +43,13 @@ def test_run_comparison_fine_tunes_without_and_with_the_callback_and_prints_both
     assert [s[0] for s in seen] == ["none", "error_guided"]
     config = seen[0][1]
     assert config == ExperimentConfig(
-        model="lrgt", pretrain_epochs=3, finetune_epochs=12, batch_size=8, fraction=0.1, devices=2, out=str(tmp_path),
+        model="lrgt",
+        pretrain_epochs=3,
+        finetune_epochs=12,
+        batch_size=8,
+        fraction=0.1,
+        devices=2,
+        out=str(tmp_path),
         model_kwargs={"lr": 0.01},
     )
     assert seen[1][1] is config and seen[0][2] == seen[1][2] == tmp_path / "pre.ckpt"

@@ -77,7 +77,10 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         batch_size=4,
         accelerator="cpu",
         trainer_kwargs={
-            "limit_train_batches": 1, "limit_val_batches": 1, "limit_test_batches": 1, "enable_progress_bar": False,
+            "limit_train_batches": 1,
+            "limit_val_batches": 1,
+            "limit_test_batches": 1,
+            "enable_progress_bar": False,
         },
     )
     config = ReportConfig(
@@ -128,7 +131,9 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     assert "Command: `lightning-vtr report" in markdown and "Total wall time:" in markdown
     tables = _parse_tables(markdown)
     header, rows = tables["Table 1: robustness to view transformations (%, test set)"]
-    assert header == ["Method"] + [f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "F-score")]
+    assert header == ["Method"] + [
+        f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "F-score")
+    ]
     assert list(rows) == ["None-VTR", "Ours"]
     for title, run in (("None-VTR", "none"), ("Ours", "error_guided")):
         res = runs[run]["results"]
@@ -197,20 +202,34 @@ def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_dire
     assert config.experiment is exp and exp.seed == 0 and exp.out == "runs/x"  # the given one is not changed
     # The report's defaults: its own budget and directory over ExperimentConfig's.
     default = ReportConfig().experiment
-    assert (default.out, default.pretrain_epochs, default.finetune_epochs, default.batch_size) == ("runs/report", 30, 10, 8)
+    assert (default.out, default.pretrain_epochs, default.finetune_epochs, default.batch_size) == (
+        "runs/report",
+        30,
+        10,
+        8,
+    )
     assert ReportConfig().experiment is not ReportConfig().experiment
 
 
 def test_plan_adds_the_runs_the_ablations_need():
     names = [r.name for r in _plan(ReportConfig(strategies=["viat"]))]
     assert names == [
-        "none", "viat", "error_guided", "error_guided_k15", "error_guided_k60", "error_guided_k90",
-        "error_guided_no_pool", "single_view_none", "single_view_error_guided",
+        "none",
+        "viat",
+        "error_guided",
+        "error_guided_k15",
+        "error_guided_k60",
+        "error_guided_k90",
+        "error_guided_no_pool",
+        "single_view_none",
+        "single_view_error_guided",
     ]
     no_pool = next(r for r in _plan(ReportConfig()) if r.name == "error_guided_no_pool")
     assert no_pool.callback_kwargs == {"use_pool": False}
     assert [r.name for r in _plan(ReportConfig(strategies=["mvtn", "random"], ablations=[]))] == ["random", "mvtn"]
-    kwargs = {r.name: r.selector_kwargs for r in _plan(ReportConfig(selector_kwargs={"error_guided": {"mode": "soft"}}))}
+    kwargs = {
+        r.name: r.selector_kwargs for r in _plan(ReportConfig(selector_kwargs={"error_guided": {"mode": "soft"}}))
+    }
     assert kwargs["error_guided_k60"] == {"mode": "soft", "k": 60} and kwargs["error_guided"] == {"mode": "soft"}
 
 
@@ -245,18 +264,34 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
 
     import lightning_vtr.experiments.report as report
 
-    names = ["none", "nature", "random", "viat", "mvtn", "error_guided", "error_guided_k15", "error_guided_k60",
-             "error_guided_k90", "error_guided_no_pool", "single_view_none", "single_view_error_guided"]
+    names = [
+        "none",
+        "nature",
+        "random",
+        "viat",
+        "mvtn",
+        "error_guided",
+        "error_guided_k15",
+        "error_guided_k60",
+        "error_guided_k90",
+        "error_guided_no_pool",
+        "single_view_none",
+        "single_view_error_guided",
+    ]
 
     def value(run: str, seed: int, view_set: str, metric: str) -> float:
-        return (names.index(run) * 7 + VIEW_SETS.index(view_set) * 3 + (metric == "fscore") * 50 + seed * seed * 5) / 200
+        return (
+            names.index(run) * 7 + VIEW_SETS.index(view_set) * 3 + (metric == "fscore") * 50 + seed * seed * 5
+        ) / 200
 
     def payload(run: str, seed: int) -> dict:
         res = {v: {m: value(run, seed, v, m) for m in ("iou@0.4", "fscore")} for v in VIEW_SETS}
         return {"results": res, "train_seconds": 10.0 * names.index(run) + seed}
 
     monkeypatch.setattr(experiment, "pretrain", lambda config: tmp_path / "pretrained.ckpt")
-    monkeypatch.setattr(experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed))
+    monkeypatch.setattr(
+        experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed)
+    )
     monkeypatch.setattr(report, "_single_view", lambda run, exp, source: payload(run.name, exp.seed))
     result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=[0, 2]))
 
@@ -267,11 +302,23 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     both = [(v, m) for v in VIEW_SETS for m in ("iou@0.4", "fscore")]
     tables = _parse_tables(result["markdown"])
     _, rows = tables["Table 1: robustness to view transformations (%, test set)"]
-    titles = {"None-VTR": "none", "Nature": "nature", "Random": "random", "VIAT": "viat", "MVTN": "mvtn", "Ours": "error_guided"}
+    titles = {
+        "None-VTR": "none",
+        "Nature": "nature",
+        "Random": "random",
+        "VIAT": "viat",
+        "MVTN": "mvtn",
+        "Ours": "error_guided",
+    }
     assert list(rows) == list(titles)
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in titles.items()}
     _, rows = tables["Ablation: bin interval K (mIoU, %)"]
-    k_runs = {"K = 15": "error_guided_k15", "K = 30": "error_guided", "K = 60": "error_guided_k60", "K = 90": "error_guided_k90"}
+    k_runs = {
+        "K = 15": "error_guided_k15",
+        "K = 30": "error_guided",
+        "K = 60": "error_guided_k60",
+        "K = 90": "error_guided_k90",
+    }
     assert rows == {t: [cell(r, v, "iou@0.4") for v in VIEW_SETS] for t, r in k_runs.items()}
     _, rows = tables["Ablation: viewpoint pool (%)"]
     pool_runs = {"Ours (with pool)": "error_guided", "Ours (without pool)": "error_guided_no_pool"}
@@ -289,5 +336,10 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         assert float(row["iou@0.4"]) == value(row["run"], seed, row["view_set"], "iou@0.4")
         assert float(row["fscore"]) == value(row["run"], seed, row["view_set"], "fscore")
         assert float(row["train_seconds"]) == 10.0 * names.index(row["run"]) + seed
-        assert row["strategy"] == (row["run"] if row["run"] in titles.values() else
-                                   "none" if row["run"] == "single_view_none" else "error_guided")
+        assert row["strategy"] == (
+            row["run"]
+            if row["run"] in titles.values()
+            else "none"
+            if row["run"] == "single_view_none"
+            else "error_guided"
+        )

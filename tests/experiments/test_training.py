@@ -38,8 +38,13 @@ class _LinearModel(L.LightningModule):
 
 def _trainer(tmp_path, epochs: int) -> L.Trainer:
     return L.Trainer(
-        max_epochs=epochs, callbacks=[CosineFineTuning(4)], default_root_dir=str(tmp_path), logger=False,
-        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu",
+        max_epochs=epochs,
+        callbacks=[CosineFineTuning(4)],
+        default_root_dir=str(tmp_path),
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
     )
 
 

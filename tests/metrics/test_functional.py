@@ -125,10 +125,11 @@ def test_check_thresholds():
     assert check_thresholds(torch.tensor([0.5])) == (0.5,)
     with pytest.raises(ValueError, match=r"^`thresholds\[1\]` must be a number in \[0, 1\], got 1.5$"):
         check_thresholds([0.4, 1.5])
-    with pytest.raises(ValueError, match=r"^`thresholds` must be a non-empty sequence of numbers in \[0, 1\], got \(\)$"):
+    with pytest.raises(
+        ValueError, match=r"^`thresholds` must be a non-empty sequence of numbers in \[0, 1\], got \(\)$"
+    ):
         check_thresholds(())
     with pytest.raises(TypeError, match=r"^`thresholds` must be a sequence of numbers in \[0, 1\], got float 0.4$"):
         check_thresholds(0.4)
     with pytest.raises(TypeError, match=r"^`thresholds\[0\]` must be a number, got str 'a'$"):
         check_thresholds(["a"])
-

@@ -84,4 +84,3 @@ def test_constructor_argument_errors():
         VoxelFScore(num_points="8")
     with pytest.raises(TypeError, match="^`categories` must be a sequence of names, got str 'chair'$"):
         VoxelIoU(categories="chair")
-

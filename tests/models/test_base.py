@@ -7,9 +7,9 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from lightning_vtr.experiments.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.protocol import ReconstructionModel
-from lightning_vtr.experiments.tables import results_from_test_output
 
 
 class _PassThrough(VoxelReconstructionModule):
@@ -98,5 +98,8 @@ def test_bad_targets_and_view_sets_raise():
     batch = _batch([2], ["aligned"], ["a"])
     with pytest.raises(ValueError, match=r"\(1, 4, 4, 4\), got \(1, 5, 5, 5\)"):
         model.training_step({**batch, "voxels": torch.zeros(1, 5, 5, 5)}, 0)
-    with pytest.raises(ValueError, match=r"`batch\['view_set'\]` must be one of 'aligned', 'hemispherical', 'spherical', got 'sideways'"):
+    with pytest.raises(
+        ValueError,
+        match=r"`batch\['view_set'\]` must be one of 'aligned', 'hemispherical', 'spherical', got 'sideways'",
+    ):
         model.test_step({**batch, "view_set": ["sideways"]}, 0)

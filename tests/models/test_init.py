@@ -13,7 +13,9 @@ def test_exports_both_models_and_their_specs():
     assert m.Pix2VoxPlusPlus is pix2vox.Pix2VoxPlusPlus and m.Pix2VoxSpec is pix2vox.Pix2VoxSpec
     assert m.PIX2VOX_PRESETS is pix2vox.PIX2VOX_PRESETS
     assert m.ResNet50Stem is resnet.ResNet50Stem and m.DistilledVisionTransformer is vit.DistilledVisionTransformer
-    assert issubclass(m.LRGT, m.VoxelReconstructionModule) and issubclass(m.Pix2VoxPlusPlus, m.VoxelReconstructionModule)
+    assert issubclass(m.LRGT, m.VoxelReconstructionModule) and issubclass(
+        m.Pix2VoxPlusPlus, m.VoxelReconstructionModule
+    )
     assert m.VIEW_SETS is VIEW_SETS
 
 

@@ -252,7 +252,11 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
 @pytest.mark.parametrize(
     ("change", "error", "match"),
     [
-        ({"grouping_blocks": (1, 4)}, ValueError, r"`grouping_blocks` must be 0-based block indices in \[0, 4\), got \[1, 4\]"),
+        (
+            {"grouping_blocks": (1, 4)},
+            ValueError,
+            r"`grouping_blocks` must be 0-based block indices in \[0, 4\), got \[1, 4\]",
+        ),
         ({"grouping_blocks": 3}, TypeError, r"`grouping_blocks` must be a sequence of ints, got int 3"),
         ({"depth": "4"}, TypeError, r"`depth` must be an int, got str '4'"),
         ({"embed_dim": 0}, ValueError, r"`embed_dim` must be an int >= 1, got 0"),

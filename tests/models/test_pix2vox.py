@@ -76,7 +76,12 @@ def test_bad_arguments():
 
 def test_model_keeps_its_preset_spec(tiny):
     assert tiny.spec is PIX2VOX_PRESETS["tiny"]
-    assert (tiny.spec.image_size, tiny.spec.backbone, tiny.spec.merger_stride, tiny.spec.feature_size) == (64, "small", 2, 4)
+    assert (tiny.spec.image_size, tiny.spec.backbone, tiny.spec.merger_stride, tiny.spec.feature_size) == (
+        64,
+        "small",
+        2,
+        4,
+    )
 
 
 def test_checkpoint_from_another_preset_errors(tiny, tmp_path):
@@ -100,7 +105,11 @@ def test_checkpoint_from_another_preset_errors(tiny, tmp_path):
 def test_checkpoint_roundtrip_same_preset(tiny, tmp_path):
     path = tmp_path / "tiny.ckpt"
     torch.save(
-        {"state_dict": tiny.state_dict(), "hyper_parameters": dict(tiny.hparams), "pytorch-lightning_version": L.__version__},
+        {
+            "state_dict": tiny.state_dict(),
+            "hyper_parameters": dict(tiny.hparams),
+            "pytorch-lightning_version": L.__version__,
+        },
         path,
     )
     loaded = Pix2VoxPlusPlus.load_from_checkpoint(path).eval()

@@ -63,7 +63,9 @@ def test_missing_and_unexpected_keys_are_listed():
     state = _random_state(_torchvision_resnet50_shapes())
     del state["layer2.3.bn3.weight"]
     state["layer2.9.conv1.weight"] = torch.zeros(1)
-    with pytest.raises(ValueError, match=r"missing keys \['layer2.3.bn3.weight'\].*unexpected keys \['layer2.9.conv1.weight'\]"):
+    with pytest.raises(
+        ValueError, match=r"missing keys \['layer2.3.bn3.weight'\].*unexpected keys \['layer2.9.conv1.weight'\]"
+    ):
         load_torchvision_resnet50(ResNet50Stem(), state)
     state = _random_state(_torchvision_resnet50_shapes())
     state["conv1.weight"] = torch.zeros(64, 3, 3, 3)

@@ -15,6 +15,7 @@ from lightning_vtr.selection.projection import error_projection, error_volume
 # These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
 _one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 
+
 # ------------------------------------------------------------------------------------- projection
 def _first_hit_along(volume: torch.Tensor, dim: int, from_high: bool) -> torch.Tensor:
     """Reference first hit along a grid axis: the value of the first non-zero voxel met from one end."""
@@ -179,8 +180,14 @@ def test_trains_under_inference_mode():
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"base_pitch": 90.0}, "base_pitch"), ({"base_yaw": [0.0]}, "base_yaw"), ({"input": "mesh"}, "input"),
-     ({"lr": -1.0}, "lr"), ({"max_yaw_offset": 200.0}, "max_yaw_offset"), ({"steps": -1}, "steps")],
+    [
+        ({"base_pitch": 90.0}, "base_pitch"),
+        ({"base_yaw": [0.0]}, "base_yaw"),
+        ({"input": "mesh"}, "input"),
+        ({"lr": -1.0}, "lr"),
+        ({"max_yaw_offset": 200.0}, "max_yaw_offset"),
+        ({"steps": -1}, "steps"),
+    ],
 )
 def test_rejects_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -78,7 +78,9 @@ def _filled_pool() -> ViewpointPool:
     gen = torch.Generator().manual_seed(0)
     for i in range(12):
         cat = ["chair", "table", "lamp"][i % 3]
-        pool.add(cat, f"obj{i}", torch.rand(3, 2, generator=gen) * torch.tensor([360.0, 180.0]) - torch.tensor([180.0, 90.0]))
+        pool.add(
+            cat, f"obj{i}", torch.rand(3, 2, generator=gen) * torch.tensor([360.0, 180.0]) - torch.tensor([180.0, 90.0])
+        )
     return pool
 
 

@@ -358,4 +358,3 @@ def test_argument_types_raise_type_errors():
         top_bins([[0.0, 1.0]], 1)
     with pytest.raises(ValueError, match=r"^`threshold` must be a number in \[0, 1\], got 1.5$"):
         error_volume(torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2), threshold=1.5)
-

@@ -89,7 +89,12 @@ def _setup(categories: list[str]):
         for i, c in enumerate(categories)
     ]
     context = SelectionContext(
-        model=model, synthesizer=synth, requests=requests, transform=_transform, loss_fn=_loss, device=torch.device("cpu")
+        model=model,
+        synthesizer=synth,
+        requests=requests,
+        transform=_transform,
+        loss_fn=_loss,
+        device=torch.device("cpu"),
     )
     volumes = torch.zeros(len(categories), R, R, R)
     return context, volumes
@@ -240,8 +245,13 @@ def test_clear_error_without_context():
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"population": 1}, "population"), ({"lr": 0.0}, "lr"), ({"num_components": 0}, "num_components"),
-     ({"entropy_weight": -1.0}, "entropy_weight"), ({"model_batch_size": 0}, "model_batch_size")],
+    [
+        ({"population": 1}, "population"),
+        ({"lr": 0.0}, "lr"),
+        ({"num_components": 0}, "num_components"),
+        ({"entropy_weight": -1.0}, "entropy_weight"),
+        ({"model_batch_size": 0}, "model_batch_size"),
+    ],
 )
 def test_rejects_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -87,33 +87,60 @@ def save_layout(components: dict, root: Path, layout: str) -> Path:
     folder.mkdir()
     if layout == "cc_projection":
         # layout (a): a config without sizes, linear "projection", a .bin state dict
-        (folder / "config.json").write_text(json.dumps({"_class_name": "CCProjection", "_diffusers_version": "0.15.0.dev0"}))
-        torch.save({"projection.weight": proj.weight.detach().clone(), "projection.bias": proj.bias.detach().clone()},
-                   folder / "diffusion_pytorch_model.bin")
+        (folder / "config.json").write_text(
+            json.dumps({"_class_name": "CCProjection", "_diffusers_version": "0.15.0.dev0"})
+        )
+        torch.save(
+            {"projection.weight": proj.weight.detach().clone(), "projection.bias": proj.bias.detach().clone()},
+            folder / "diffusion_pytorch_model.bin",
+        )
         # a feature extractor with CLIP's normalisation and crop size
         fe = root / "feature_extractor"
         fe.mkdir()
-        (fe / "preprocessor_config.json").write_text(json.dumps({
-            "crop_size": {"height": 224, "width": 224}, "do_center_crop": True, "do_normalize": True,
-            "do_resize": True, "image_mean": [0.48145466, 0.4578275, 0.40821073],
-            "image_processor_type": "CLIPImageProcessor", "image_std": [0.26862954, 0.26130258, 0.27577711],
-            "resample": 3, "size": {"shortest_edge": 224},
-        }))
+        (fe / "preprocessor_config.json").write_text(
+            json.dumps(
+                {
+                    "crop_size": {"height": 224, "width": 224},
+                    "do_center_crop": True,
+                    "do_normalize": True,
+                    "do_resize": True,
+                    "image_mean": [0.48145466, 0.4578275, 0.40821073],
+                    "image_processor_type": "CLIPImageProcessor",
+                    "image_std": [0.26862954, 0.26130258, 0.27577711],
+                    "resample": 3,
+                    "size": {"shortest_edge": 224},
+                }
+            )
+        )
         index_name = "cc_projection"
     else:
         # layout (b): sizes in the config, linear "proj", safetensors
-        (folder / "config.json").write_text(json.dumps({
-            "_class_name": "CLIPCameraProjection", "embedding_dim": proj.out_features,
-            "additional_embeddings": proj.in_features - proj.out_features,
-        }))
-        save_file({"proj.weight": proj.weight.detach().clone().contiguous(), "proj.bias": proj.bias.detach().clone()},
-                  str(folder / "diffusion_pytorch_model.safetensors"))
+        (folder / "config.json").write_text(
+            json.dumps(
+                {
+                    "_class_name": "CLIPCameraProjection",
+                    "embedding_dim": proj.out_features,
+                    "additional_embeddings": proj.in_features - proj.out_features,
+                }
+            )
+        )
+        save_file(
+            {"proj.weight": proj.weight.detach().clone().contiguous(), "proj.bias": proj.bias.detach().clone()},
+            str(folder / "diffusion_pytorch_model.safetensors"),
+        )
         index_name = "clip_camera_projection"
-    (root / "model_index.json").write_text(json.dumps({
-        "_class_name": "Zero1to3StableDiffusionPipeline", "unet": ["diffusers", "UNet2DConditionModel"],
-        "vae": ["diffusers", "AutoencoderKL"], "image_encoder": ["transformers", "CLIPVisionModelWithProjection"],
-        "scheduler": ["diffusers", "DDIMScheduler"], index_name: [None, None],
-    }))
+    (root / "model_index.json").write_text(
+        json.dumps(
+            {
+                "_class_name": "Zero1to3StableDiffusionPipeline",
+                "unet": ["diffusers", "UNet2DConditionModel"],
+                "vae": ["diffusers", "AutoencoderKL"],
+                "image_encoder": ["transformers", "CLIPVisionModelWithProjection"],
+                "scheduler": ["diffusers", "DDIMScheduler"],
+                index_name: [None, None],
+            }
+        )
+    )
     return root
 
 

@@ -82,6 +82,7 @@ def test_bad_embedding_and_shape():
 def test_nearest_source_view():
     src = torch.tensor([[0.0, 0.0], [90.0, 0.0], [0.0, 90.0]])
     tgt = torch.tensor([[80.0, 5.0], [-10.0, 10.0], [45.0, 80.0], [179.0, 0.0], [100.0, -5.0]])
+
     # reference: brute-force great-circle angle via dot products of unit vectors
     def unit(v):
         y, p = math.radians(v[0]), math.radians(v[1])

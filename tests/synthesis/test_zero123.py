@@ -26,7 +26,9 @@ def _sibling(synth: Zero123Synthesizer, **kwargs) -> Zero123Synthesizer:
     return Zero123Synthesizer(synth.unet, synth.vae, synth.image_encoder, synth.projection, synth.scheduler, **settings)
 
 
-def _object_image(size: int = 48, box: tuple[int, int, int, int] = (10, 30, 14, 40), colour=(200, 40, 40)) -> np.ndarray:
+def _object_image(
+    size: int = 48, box: tuple[int, int, int, int] = (10, 30, 14, 40), colour=(200, 40, 40)
+) -> np.ndarray:
     """Transparent background with an opaque coloured rectangle (rows r0:r1, cols c0:c1)."""
     img = np.zeros((size, size, 4), dtype=np.uint8)
     r0, r1, c0, c1 = box
@@ -118,7 +120,9 @@ def test_projection_with_wrong_keys_or_sizes(tiny_zero123, tmp_path):
     shutil.copytree(tiny_zero123.layout_b, path)
     weights = path / "clip_camera_projection" / "diffusion_pytorch_model.safetensors"
     save_file({"linear.weight": torch.zeros(32, 36)}, str(weights))
-    with pytest.raises(Zero123CheckpointError, match=r"clip_camera_projection/.*'proj.weight'.*found keys \['linear.weight'\]"):
+    with pytest.raises(
+        Zero123CheckpointError, match=r"clip_camera_projection/.*'proj.weight'.*found keys \['linear.weight'\]"
+    ):
         Zero123Synthesizer.from_pretrained(path)
     # sizes disagreeing with config.json
     save_file({"proj.weight": torch.zeros(32, 40), "proj.bias": torch.zeros(32)}, str(weights))
@@ -204,9 +208,7 @@ def test_synthesize_shapes_dtype_and_ranges(synth_a, synth_b):
         rgb = out[0][..., :3].astype(np.float32) / 255.0
         expected_alpha = np.where((rgb >= synth.background_threshold - 1e-3).all(-1), 0, 255)
         assert np.mean(expected_alpha == out[0][..., 3]) > 0.99
-    decoded = synth_a(
-        [_object_image()], torch.tensor([[0.0, 0.0]]), torch.tensor([[30.0, 0.0]]), output_type="pt"
-    )
+    decoded = synth_a([_object_image()], torch.tensor([[0.0, 0.0]]), torch.tensor([[30.0, 0.0]]), output_type="pt")
     assert decoded.shape == (1, 3, 64, 64) and decoded.dtype == torch.float32
     assert float(decoded.min()) >= 0.0 and float(decoded.max()) <= 1.0
 
@@ -258,7 +260,8 @@ def test_pose_reaches_the_projection(synth_a, synth_b):
             ]
         torch.testing.assert_close(token_in[:, 0, -4:], torch.tensor(expected), atol=1e-6, rtol=0)
         torch.testing.assert_close(
-            token_in[:, 0, -4:], relative_pose(torch.tensor([0.0, 30.0]), torch.tensor([[80.0, 0.0], [10.0, 40.0]]), synth.pose_embedding)
+            token_in[:, 0, -4:],
+            relative_pose(torch.tensor([0.0, 30.0]), torch.tensor([[80.0, 0.0], [10.0, 40.0]]), synth.pose_embedding),
         )
 
 
@@ -278,8 +281,14 @@ def _count_unet_calls(synth, guidance):
     rows = []
     handle = synth.unet.register_forward_hook(lambda m, inp, out: rows.append(inp[0].shape[0]))
     try:
-        synth([_object_image()] * 3, torch.zeros(3, 2), torch.tensor([[30.0, 0.0]] * 3),
-              guidance_scale=guidance, num_inference_steps=3, output_type="pt")
+        synth(
+            [_object_image()] * 3,
+            torch.zeros(3, 2),
+            torch.tensor([[30.0, 0.0]] * 3),
+            guidance_scale=guidance,
+            num_inference_steps=3,
+            output_type="pt",
+        )
     finally:
         handle.remove()
     return rows
@@ -299,7 +308,9 @@ def test_unconditional_branch_is_zeros(synth_a):
 
     handle = synth_a.unet.register_forward_hook(hook, with_kwargs=True)
     try:
-        synth_a([_object_image()], torch.zeros(1, 2), torch.tensor([[30.0, 0.0]]), num_inference_steps=1, output_type="pt")
+        synth_a(
+            [_object_image()], torch.zeros(1, 2), torch.tensor([[30.0, 0.0]]), num_inference_steps=1, output_type="pt"
+        )
     finally:
         handle.remove()
     assert tokens[0].shape == (2, 1, 32) and latents[0].shape == (2, 4, 8, 8)
@@ -317,8 +328,14 @@ def test_config_key_covers_outputs(tiny_zero123, synth_a, synth_b):
     assert base != synth_b.config_key()
     assert _sibling(synth_a).config_key() == base
     changes = (
-        dict(num_inference_steps=3), dict(guidance_scale=2.0), dict(eta=0.0), dict(seed=5), dict(image_size=48),
-        dict(pose_embedding="stable"), dict(foreground_ratio=0.5), dict(dtype=torch.bfloat16),
+        dict(num_inference_steps=3),
+        dict(guidance_scale=2.0),
+        dict(eta=0.0),
+        dict(seed=5),
+        dict(image_size=48),
+        dict(pose_embedding="stable"),
+        dict(foreground_ratio=0.5),
+        dict(dtype=torch.bfloat16),
     )
     for change in changes:
         assert _sibling(synth_a, **change).config_key() != base, change
