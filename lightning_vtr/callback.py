@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import lightning as L
 import numpy as np
@@ -27,6 +27,7 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int,
 __all__ = ["ErrorGuidedViewAugmentation"]
 
 _STATE_VERSION = 1
+_NOTHING_GENERATED = -2
 # What the callback calls on the datamodule (VTRDataModule has all of it).
 _DATAMODULE_API = ("split_records", "eval_item", "object_views", "add_samples", "transform")
 
@@ -45,6 +46,19 @@ def _generator(*key: int) -> torch.Generator:
     # are split over processes or batches.
     seed = int(np.random.SeedSequence(list(key)).generate_state(1, dtype=np.uint64)[0] >> 1)
     return torch.Generator().manual_seed(seed)
+
+
+def _reload_train_dataloader(trainer: L.Trainer) -> None:
+    # Lightning has no public "reload now": mark the last reload as long ago, and the fit loop rebuilds the
+    # train loader when the epoch starts (as reload_dataloaders_every_n_epochs does between epochs).
+    loop = trainer.fit_loop
+    if hasattr(loop, "_last_train_dl_reload_epoch"):
+        loop._last_train_dl_reload_epoch = float("-inf")
+    else:  # pragma: no cover - a Lightning without the attribute
+        rank_zero_warn(
+            "ErrorGuidedViewAugmentation could not ask this Lightning version to rebuild the train loader; the "
+            "views generated before this epoch are trained on from the next epoch."
+        )
 
 
 def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
@@ -66,14 +80,17 @@ def _broadcast(trainer: L.Trainer, obj: Any) -> Any:
 class ErrorGuidedViewAugmentation(L.Callback):
     r"""Trains a multi-view reconstruction model on the viewpoints it reconstructs worst.
 
-    At the end of every training epoch but the last it
+    Before the first training epoch (from the model the fit starts with, e.g. the pretrained one; the
+    paper's first inner maximisation) and at the end of every training epoch but the last it
 
-    1. draws a seeded random ``fraction`` of the training objects (at least ``min_objects``),
+    1. draws a seeded random ``search_fraction`` of the training objects (at least ``min_objects``),
     2. predicts their voxels from their Aligned views (eval mode, no gradients),
     3. asks ``selector`` for new viewpoints (error-guided by default: the views whose orthographic
        projection of the error volume :math:`E = |V - V^{gt}|` is largest),
-    4. with a pool (the error-guided default) stores the selections per category and draws each
-       object's view set from its category's pool, preferably one found on another object,
+    4. picks ``fraction`` of the training objects among the searched ones to get new views (``generate_for``),
+       and with a pool (the error-guided default) stores every searched object's selection per category
+       and draws each picked object's view set from its category's pool, by default one found on another
+       object (``pool_refresh`` rebuilds the pool from the current model at every selection),
     5. synthesizes images at those viewpoints with ``synthesizer`` (mesh rendering by default;
        Zero-1-to-3 with :class:`~lightning_vtr.synthesis.zero123.Zero123Synthesizer`),
     6. adds the new (images, viewpoints, voxels) samples to the datamodule, which serves them from the
@@ -97,11 +114,25 @@ class ErrorGuidedViewAugmentation(L.Callback):
             :data:`lightning_vtr.selection.SELECTORS` (``"error_guided"``, ``"random"``, ``"nature"``,
             ``"viat"``, ``"mvtn"``), built with its defaults; default ``ErrorGuidedSelector()`` (K = 30, 3 views).
         synthesizer: a :class:`~lightning_vtr.synthesis.base.Synthesizer`; default ``RenderSynthesizer()``.
-        fraction: share of training objects searched per epoch (the paper's random update strategy: 5 %).
-        min_objects: lower bound on objects searched per epoch.
+        fraction: share of training objects given new views per selection (the paper's random update
+            strategy: 5 %).
+        search_fraction: share of training objects scored per selection (``None``: ``fraction``). Scoring
+            is cheap next to synthesis, so searching more objects than get new views fills the pool with the
+            current model's weak views (the released code searches far more than it generates for).
+        generate_for: which searched objects get the new views when ``search_fraction > fraction``:
+            ``"random"`` (a seeded random subset, the default: it keeps every category in proportion and does
+            not show the same few hard objects again and again; with a pool their views come from the whole
+            category anyway) or ``"error"`` (the objects with the largest voxel error first).
+        min_objects: lower bound on objects searched and given views per selection.
         use_pool: store selections in a per-category viewpoint pool and sample from it; default: the
             selector's ``uses_pool`` (True for error-guided, False for Random/Nature).
         pool_capacity: view sets kept per category in the pool (``None``: all).
+        pool_refresh: empty the pool before each selection, so it holds only what the current model gets
+            wrong (the released code rebuilds it every epoch); ``False`` keeps every earlier selection.
+        pool_prefer_others: draw a view set found on *another* object of the category when there is one
+            (the paper's transferability argument); ``False`` draws among all, the object's own included.
+        select_at_start: run the first selection and generation in ``on_train_start``, before epoch 0 trains,
+            so every fine-tuning epoch sees selected views; ``False`` waits for the end of epoch 0.
         max_samples: cap on generated samples kept in the datamodule (oldest dropped); ``None``: all.
         batch_size: objects per prediction / synthesis call.
         source_view_set: which view set the objects' current views come from.
@@ -129,9 +160,14 @@ class ErrorGuidedViewAugmentation(L.Callback):
         synthesizer: Synthesizer | None = None,
         *,
         fraction: float = 0.05,
+        search_fraction: float | None = None,
+        generate_for: Literal["random", "error"] = "random",
         min_objects: int = 1,
         use_pool: bool | None = None,
         pool_capacity: int | None = None,
+        pool_refresh: bool = False,
+        pool_prefer_others: bool = True,
+        select_at_start: bool = True,
         max_samples: int | None = None,
         batch_size: int = 16,
         source_view_set: str = "aligned",
@@ -140,6 +176,13 @@ class ErrorGuidedViewAugmentation(L.Callback):
         progress_bar: bool = True,
     ) -> None:
         fraction = check_float("fraction", fraction, minimum=0.0, maximum=1.0, min_open=True)
+        if search_fraction is None:
+            search_fraction = fraction
+        search_fraction = check_float("search_fraction", search_fraction, minimum=fraction, maximum=1.0)
+        generate_for = check_choice("generate_for", generate_for, ("random", "error"))
+        pool_refresh = check_type("pool_refresh", pool_refresh, bool)
+        pool_prefer_others = check_type("pool_prefer_others", pool_prefer_others, bool)
+        select_at_start = check_type("select_at_start", select_at_start, bool)
         min_objects = check_int("min_objects", min_objects, minimum=1)
         if max_samples is not None:
             max_samples = check_int("max_samples", max_samples, minimum=1)
@@ -169,7 +212,11 @@ class ErrorGuidedViewAugmentation(L.Callback):
         self.selector = selector
         self.synthesizer = synthesizer
         self.fraction = fraction
+        self.search_fraction = search_fraction
+        self.generate_for = generate_for
         self.min_objects = min_objects
+        self.pool_refresh = pool_refresh
+        self.select_at_start = select_at_start
         self.use_pool = selector.uses_pool if use_pool is None else bool(use_pool)
         self.max_samples = max_samples
         self.batch_size = batch_size
@@ -181,8 +228,11 @@ class ErrorGuidedViewAugmentation(L.Callback):
         if self.use_pool:
             from lightning_vtr.selection.pool import ViewpointPool
 
-            self.pool = ViewpointPool(capacity=pool_capacity, num_views=selector.num_views)
-        self.last_epoch = -1  # last epoch whose samples were generated
+            self.pool = ViewpointPool(
+                capacity=pool_capacity, num_views=selector.num_views, prefer_others=pool_prefer_others
+            )
+        # Last epoch whose samples were generated: -1 is the selection before epoch 0, -2 none yet.
+        self.last_epoch = _NOTHING_GENERATED
         self.history: list[dict[str, Any]] = []
 
     @property
@@ -219,13 +269,19 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     # ------------------------------------------------------------------ hooks
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        # Resuming: if the checkpoint was written before the previous epoch's samples were generated
-        # (ModelCheckpoint saves at validation end; the last epoch of a finished run generates nothing),
-        # generate them now. Lightning rebuilds the train loader at the next epoch start, so they are seen.
-        missed = trainer.current_epoch - 1
-        if missed >= 0 and self.last_epoch < missed:
-            rank_zero_info(f"ErrorGuidedViewAugmentation: catching up the generation of epoch {missed} after resume")
-            self._run(trainer, pl_module, missed)
+        # The generation that serves the epoch about to start: before epoch 0 from the model the fit starts
+        # with; after a resume, one the checkpoint predates (ModelCheckpoint saves at validation end; the last
+        # epoch of a finished run generates nothing).
+        due = trainer.current_epoch - 1
+        if due == -1 and not self.select_at_start:
+            return
+        if self.last_epoch < due:
+            if due >= 0:
+                rank_zero_info(f"ErrorGuidedViewAugmentation: catching up the generation of epoch {due} after resume")
+            self._run(trainer, pl_module, due)
+            # Lightning built this epoch's train loader before on_train_start; have it rebuilt so the
+            # new samples are trained on in this very epoch.
+            _reload_train_dataloader(trainer)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.sanity_checking or trainer.should_stop:
@@ -236,10 +292,26 @@ class ErrorGuidedViewAugmentation(L.Callback):
         self._run(trainer, pl_module, trainer.current_epoch)
 
     # ------------------------------------------------------------------ the algorithm
+    def _count(self, share: float, num_train: int) -> int:
+        return min(num_train, max(self.min_objects, int(round(share * num_train))))
+
     def _choose_objects(self, num_train: int, epoch: int) -> list[int]:
-        count = min(num_train, max(self.min_objects, int(round(self.fraction * num_train))))
-        rng = np.random.default_rng([self.seed, epoch])
-        return sorted(rng.choice(num_train, size=count, replace=False).tolist())
+        """Indices of the objects searched at ``epoch``, in train order."""
+        rng = np.random.default_rng([self.seed, epoch + 1])
+        return sorted(rng.choice(num_train, size=self._count(self.search_fraction, num_train), replace=False).tolist())
+
+    def _generation_targets(self, selected: list[_Selected], num_train: int, epoch: int) -> list[_Selected]:
+        """The searched objects that get new views at ``epoch``, in train order."""
+        count = min(len(selected), self._count(self.fraction, num_train))
+        if count == len(selected):
+            return selected
+        if self.generate_for == "error":  # largest error first; ties by train order
+            order = sorted(range(len(selected)), key=lambda j: (-selected[j].error, selected[j].index))
+            keep = set(order[:count])
+        else:
+            rng = np.random.default_rng([self.seed, epoch + 1, 3])
+            keep = set(rng.choice(len(selected), size=count, replace=False).tolist())
+        return [s for j, s in enumerate(selected) if j in keep]
 
     def _context(self, trainer: L.Trainer, pl_module: L.LightningModule, requests: list) -> SelectionContext:
         def loss_fn(pred: Tensor, target: Tensor) -> Tensor:
@@ -272,7 +344,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         was_training = pl_module.training
         pl_module.eval()
         try:
-            items = [dm.eval_item(records[i], self.source_view_set, seed=epoch) for i in mine]
+            items = [dm.eval_item(records[i], self.source_view_set, seed=epoch + 1) for i in mine]
             predicted = self._predict(pl_module, [it["images"] for it in items]) if items else torch.empty(0)
             target = torch.stack([it["voxels"] for it in items]) if items else torch.empty(0)
             if self.selector.batched:
@@ -287,7 +359,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
                     predicted[row : row + 1],
                     target[row : row + 1],
                     [rec.category],
-                    generator=_generator(self.seed, epoch, index, 0),
+                    generator=_generator(self.seed, epoch + 1, index, 0),
                     context=context,
                 )[0]
                 selected.append(self._selected(rec, index, views, predicted[row], target[row]))
@@ -325,7 +397,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
                 all_pred,
                 all_target,
                 [r.category for r in recs],
-                generator=_generator(self.seed, epoch, 0, 2),
+                generator=_generator(self.seed, epoch + 1, 0, 2),
                 context=context,
             )
             selected = [
@@ -357,14 +429,17 @@ class ErrorGuidedViewAugmentation(L.Callback):
             mesh_path=record.mesh_path,
         )
 
-    def _view_sets(self, epoch: int, selected: list[_Selected]) -> list[np.ndarray]:
+    def _view_sets(self, epoch: int, searched: list[_Selected], targets: list[_Selected]) -> list[np.ndarray]:
+        """The view set each of ``targets`` is shown from; every searched selection goes into the pool first."""
         if self.pool is None:
-            return [s.viewpoints for s in selected]
-        for s in selected:
+            return [s.viewpoints for s in targets]
+        if self.pool_refresh:
+            self.pool.clear()
+        for s in searched:
             self.pool.add(s.category, s.object_id, torch.as_tensor(s.viewpoints))
         return [
-            self.pool.sample(s.category, s.object_id, generator=_generator(self.seed, epoch, s.index, 1)).numpy()
-            for s in selected
+            self.pool.sample(s.category, s.object_id, generator=_generator(self.seed, epoch + 1, s.index, 1)).numpy()
+            for s in targets
         ]
 
     def _synthesize(
@@ -400,8 +475,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
         if num_train == 0:
             rank_zero_warn("ErrorGuidedViewAugmentation: the datamodule has no training objects; nothing generated.")
             return
-        selected = self._select(trainer, pl_module, epoch, self._choose_objects(num_train, epoch))
-        view_sets = self._view_sets(epoch, selected)
+        searched = self._select(trainer, pl_module, epoch, self._choose_objects(num_train, epoch))
+        selected = self._generation_targets(searched, num_train, epoch)
+        view_sets = self._view_sets(epoch, searched, selected)
         images = self._synthesize(trainer, epoch, selected, view_sets)
         samples = [
             GeneratedSample(s.category, s.object_id, img, np.asarray(vs, dtype=np.float64), epoch)
@@ -417,7 +493,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
             "objects": [f"{s.category}/{s.object_id}" for s in selected],
             "selected": [s.viewpoints.round(3).tolist() for s in selected],
             "view_sets": [np.asarray(v).round(3).tolist() for v in view_sets],
-            "mean_error": float(np.mean([s.error for s in selected])) if selected else 0.0,
+            "mean_error": float(np.mean([s.error for s in searched])) if searched else 0.0,
+            "searched": len(searched),
         }
         self.history.append({k: record[k] for k in ("epoch", "mean_error")} | {"samples": len(samples)})
         self._log(trainer, record, samples)
@@ -435,7 +512,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
             "vtr/mean_error": record["mean_error"],
         }
         rank_zero_info(
-            f"VTR epoch {record['epoch']}: {len(samples)} samples generated ({total} in total), "
+            f"VTR {'before training' if record['epoch'] < 0 else 'epoch ' + str(record['epoch'])}: "
+            f"{len(samples)} samples generated ({total} in total), "
             f"mean voxel error of searched objects {record['mean_error']:.4f}"
         )
         for logger in trainer.loggers:
@@ -446,7 +524,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
         if log_dir:
             out = Path(log_dir) / "vtr_selection"
             out.mkdir(parents=True, exist_ok=True)
-            (out / f"epoch_{record['epoch']:04d}.json").write_text(json.dumps(record, indent=1))
+            name = "start" if record["epoch"] < 0 else f"epoch_{record['epoch']:04d}"
+            (out / f"{name}.json").write_text(json.dumps(record, indent=1))
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -470,7 +549,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
                 f"Resuming ErrorGuidedViewAugmentation with seed={self.seed}, but the checkpoint used "
                 f"seed={state_dict['seed']}: later generations will differ from the original run."
             )
-        self.last_epoch = int(state_dict.get("last_epoch", -1))
+        self.last_epoch = int(state_dict.get("last_epoch", _NOTHING_GENERATED))
         self.history = list(state_dict.get("history", []))
         if self.pool is not None and state_dict.get("pool") is not None:
             self.pool.load_state_dict(state_dict["pool"])

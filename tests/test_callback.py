@@ -107,9 +107,10 @@ def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path)
     callback = make_callback(fraction=0.2)
     make_trainer(tmp_path, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     samples = dm.generated_samples
-    # 21 training objects, round(0.2 * 21) = 4 per epoch, epochs 0 and 1 (not the last, not the sanity check)
-    assert [s["epoch"] for s in samples] == [0] * 4 + [1] * 4
-    assert callback.last_epoch == 1 and len(callback.pool) == 8
+    # 21 training objects, round(0.2 * 21) = 4 per selection: before epoch 0 (from the model the fit starts
+    # with, labelled -1) and after epochs 0 and 1 (not the last, not the sanity check)
+    assert [s["epoch"] for s in samples] == [-1] * 4 + [0] * 4 + [1] * 4
+    assert callback.last_epoch == 1 and len(callback.pool) == 12
     # Every training view set is a set the selector found on some object of the same category.
     for s in samples:
         _, sets = callback.pool.view_sets(s["category"])
@@ -126,7 +127,7 @@ def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path)
     occupancy = np.mean([dm.object_voxels(dm.record(*o.split("/"))).mean().item() for o in record["objects"]])
     assert record["mean_error"] == pytest.approx(occupancy, rel=1e-6)
     # and the next epoch trained on them: the train set grew.
-    assert len(dm.train_dataset()) == 21 + 8
+    assert len(dm.train_dataset()) == 21 + 12
 
 
 @pytest.mark.parametrize("selector_cls", [RandomSelector, NatureSelector])
@@ -140,7 +141,7 @@ def test_any_selector_runs_through_the_same_callback(tiny_dataset, tmp_path, sel
     pitches = np.array(record["selected"])[..., 1]
     if selector_cls is NatureSelector:
         assert np.all(pitches == 0.0)
-    assert len(dm.generated_samples) == 2
+    assert len(dm.generated_samples) == 4  # 2 before epoch 0, 2 after it
 
 
 def _fit(root, tmp_path, epochs, ckpt=None):
@@ -159,7 +160,7 @@ def test_resume_generates_exactly_what_an_uninterrupted_run_does(tiny_dataset, t
     resumed, resumed_cb = _fit(tiny_dataset, tmp_path / "part", 4, ckpt=str(tmp_path / "part" / "ckpt" / "last.ckpt"))
     assert [c[:4] for c in generated_contents(resumed)] == [c[:4] for c in generated_contents(full)]
     assert generated_contents(resumed) == generated_contents(full)
-    assert [s["epoch"] for s in full.generated_samples] == [0] * 3 + [1] * 3 + [2] * 3
+    assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
     assert resumed_cb.pool.categories() == full_cb.pool.categories()
     for category in full_cb.pool.categories():
         ids_a, sets_a = full_cb.pool.view_sets(category)
@@ -213,9 +214,9 @@ def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path)
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 
     assert generated_index(ddp / "gen") == generated_index(single / "gen")
-    assert len(generated_index(single / "gen")) == 8
+    assert len(generated_index(single / "gen")) == 12
     digests = [json.loads(line) for line in (tmp_path / "digests.jsonl").read_text().splitlines()]
-    assert [d[0][0] for d in digests] == [21, 25, 29]  # epochs 0, 1, 2 see 0, 4, 8 generated samples
+    assert [d[0][0] for d in digests] == [25, 29, 33]  # epochs 0, 1, 2 see 4, 8, 12 generated samples
     assert all(d[0] == d[1] for d in digests)  # rank 0 and rank 1 serve identical data
 
 
@@ -235,3 +236,59 @@ def test_source_images_are_decoded_only_for_synthesizers_that_read_them(tiny_dat
     assert diffused.source_images.shape == (8, 64, 64, 4)  # all 8 views of the tiny dataset's aligned set
     assert torch.equal(rendered.source_viewpoints, diffused.source_viewpoints)
     assert torch.allclose(diffused.source_viewpoints[:, 1], torch.full((8,), 30.0))
+
+
+class TrainSetSizeProbe(L.Callback):
+    """Records the size of the train loader's dataset at the start of every epoch."""
+
+    def __init__(self) -> None:
+        self.sizes: list[int] = []
+
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        self.sizes.append(len(trainer.train_dataloader.dataset))
+
+
+@pytest.mark.parametrize("select_at_start, expected", [(True, [25, 29, 33]), (False, [21, 25, 29])])
+def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, select_at_start, expected):
+    # 21 training objects, 4 new samples per selection; with select_at_start, the selection made from the model
+    # the fit starts with is in epoch 0's loader (Lightning built that loader before on_train_start).
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    probe = TrainSetSizeProbe()
+    callback = make_callback(fraction=0.2, select_at_start=select_at_start)
+    make_trainer(tmp_path, 3, [callback, probe]).fit(EmptyPredictionModel(), datamodule=dm)
+    assert probe.sizes == expected
+
+
+def test_search_more_objects_than_get_views(tiny_dataset, tmp_path):
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    callback = make_callback(fraction=0.1, search_fraction=0.5, generate_for="error", select_at_start=True)
+    make_trainer(tmp_path, 1, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
+    record = json.loads((Path(tmp_path) / "vtr_selection" / "start.json").read_text())
+    # round(0.5 * 21) = 10 objects searched, all in the pool; round(0.1 * 21) = 2 get new views
+    assert record["searched"] == 10 and len(callback.pool) == 10
+    assert len(dm.generated_samples) == 2
+    # With an empty prediction an object's error is its occupancy: "error" picks the two fullest searched objects.
+    occupancy = {key: dm.object_voxels(dm.record(*key.split("/"))).mean().item() for key in _pool_keys(callback)}
+    fullest = sorted(occupancy, key=lambda key: -occupancy[key])[:2]
+    assert sorted(f"{s['category']}/{s['object_id']}" for s in dm.generated_samples) == sorted(fullest)
+
+
+def _pool_keys(callback) -> list[str]:
+    return [f"{cat}/{oid}" for cat in callback.pool.categories() for oid in callback.pool.view_sets(cat)[0]]
+
+
+def test_pool_refresh_keeps_only_the_latest_selection(tiny_dataset, tmp_path):
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    callback = make_callback(fraction=0.2, pool_refresh=True)
+    make_trainer(tmp_path, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
+    assert len(dm.generated_samples) == 12  # three selections of 4
+    assert len(callback.pool) == 4  # only the last selection's sets
+    last = {s["object_id"] for s in dm.generated_samples if s["epoch"] == 1}
+    assert {key.split("/")[1] for key in _pool_keys(callback)} == last
+
+
+def test_callback_rejects_a_search_fraction_below_fraction():
+    with pytest.raises(ValueError, match=r"`search_fraction` must be a number in \[0.2, 1\], got 0.1"):
+        ErrorGuidedViewAugmentation(fraction=0.2, search_fraction=0.1)
+    with pytest.raises(ValueError, match="`generate_for` must be one of 'random', 'error', got 'worst'"):
+        ErrorGuidedViewAugmentation(generate_for="worst")

@@ -54,8 +54,12 @@ def _state_digest(state) -> str:
     return digest.hexdigest()
 
 
+def _record_order(path: Path) -> str:
+    return "" if path.stem == "start" else path.stem  # the selection before epoch 0 first
+
+
 def _records(tmp_path: Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted((tmp_path / "vtr_selection").glob("epoch_*.json"))]
+    return [json.loads(p.read_text()) for p in sorted((tmp_path / "vtr_selection").glob("*.json"), key=_record_order)]
 
 
 def test_viat_samples_are_its_view_sets_spaced_120_degrees_in_yaw(tiny_dataset, tmp_path):
@@ -64,10 +68,10 @@ def test_viat_samples_are_its_view_sets_spaced_120_degrees_in_yaw(tiny_dataset, 
     make_trainer(tmp_path, 3, [callback]).fit(TinyUserModel(), datamodule=dm)
     assert callback.pool is None  # VIAT trains on what it selects, no pool
     records = _records(tmp_path)
-    assert [r["epoch"] for r in records] == [0, 1]
+    assert [r["epoch"] for r in records] == [-1, 0, 1]  # before epoch 0, after epochs 0 and 1
     samples = dm.generated_samples
-    # round(0.15 * 21) = 3 objects per generating epoch
-    assert [s["epoch"] for s in samples] == [0] * 3 + [1] * 3
+    # round(0.15 * 21) = 3 objects per selection
+    assert [s["epoch"] for s in samples] == [-1] * 3 + [0] * 3 + [1] * 3
     for record in records:
         assert record["view_sets"] == record["selected"]
         for views in np.array(record["selected"]):
@@ -92,8 +96,9 @@ def test_viat_samples_are_its_view_sets_spaced_120_degrees_in_yaw(tiny_dataset, 
 
 def test_mvtn_samples_are_its_network_views_of_the_error(tiny_dataset, tmp_path):
     dm = make_datamodule(tiny_dataset, tmp_path)
-    callback = make_callback(selector=SELECTORS["mvtn"](), fraction=0.15)
-    # Two epochs: only epoch 0 generates, so the selector's final network is the one that chose its views.
+    # Two epochs, no selection before epoch 0: only epoch 0's end generates, so the selector's final network
+    # is the one that chose its views.
+    callback = make_callback(selector=SELECTORS["mvtn"](), fraction=0.15, select_at_start=False)
     make_trainer(tmp_path, 2, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     assert callback.pool is None
     samples = dm.generated_samples
@@ -149,19 +154,21 @@ def test_resume_restores_the_selector_and_generates_what_an_uninterrupted_run_do
     saved = torch.load(ckpt, map_location="cpu", weights_only=False)["callbacks"][part_cb.state_key]["selector"]
     assert saved and _state_digest(saved) == _state_digest(part_cb.selector.state_dict())
     resumed, resumed_cb, resumed_sizes = _fit(tiny_dataset, tmp_path / "part", 4, name, ckpt=str(ckpt))
-    assert [s["epoch"] for s in full.generated_samples] == [0] * 3 + [1] * 3 + [2] * 3
+    assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
     # Epoch 1's search (which the checkpoint predates) is caught up from the restored selector ...
     assert generated_contents(resumed) == generated_contents(full)
     assert _state_digest(resumed_cb.selector.state_dict()) == _state_digest(full_cb.selector.state_dict())
     # ... and a fresh selector differs, so the equalities above are not vacuous.
     assert _state_digest(SELECTORS[name]().state_dict()) != _state_digest(full_cb.selector.state_dict())
-    # The first resumed epoch trains on the caught-up samples too: 21 objects + 3 per generating epoch.
-    assert full_sizes == [(0, 21), (1, 24), (2, 27), (3, 30)]
+    # The first resumed epoch trains on the caught-up samples too: 21 objects + 3 per selection, the first
+    # made before epoch 0.
+    assert full_sizes == [(0, 24), (1, 27), (2, 30), (3, 33)]
     assert part_sizes + resumed_sizes == full_sizes
 
 
 def _assert_states_close(a, b, path="state") -> None:
-    """Nested states equal, tensors up to float32 round-off (reductions differ with the thread count)."""
+    """Nested states equal, tensors up to accumulated float32 round-off (reductions differ with the thread count,
+    and three rounds of selector training compound it)."""
     if isinstance(a, dict):
         assert sorted(a, key=str) == sorted(b, key=str), path
         for key in a:
@@ -171,7 +178,7 @@ def _assert_states_close(a, b, path="state") -> None:
         for i, (x, y) in enumerate(zip(a, b)):
             _assert_states_close(x, y, f"{path}[{i}]")
     elif isinstance(a, torch.Tensor):
-        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4, msg=lambda m: f"{path}: {m}")
+        torch.testing.assert_close(a, b, rtol=0.0, atol=2e-3, msg=lambda m: f"{path}: {m}")
     else:
         assert a == b, path
 
@@ -219,7 +226,7 @@ def test_two_process_ddp_generates_and_learns_what_one_process_does(tiny_dataset
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 
     ddp_index, single_index = generated_index(ddp / "gen"), generated_index(single / "gen")
-    assert len(single_index) == 6
+    assert len(single_index) == 9
     assert [e[:3] for e in ddp_index] == [e[:3] for e in single_index]  # same epochs and objects, same order
     # Viewpoints chosen by the selector rank 0 learned: equal up to the float round-off of its state (below),
     # so the rendered views may differ in a few edge pixels; where the viewpoints agree exactly, so do the bytes.

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import check_viewpoints, normalize_viewpoints, sample_uniform_viewpoints
-from lightning_vtr.utils.validation import check_choice, check_int
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["ViewpointPool"]
 
@@ -27,7 +27,9 @@ class ViewpointPool:
 
     Every :meth:`add` appends a set (an object searched in several epochs contributes several sets).
     :meth:`sample` draws one set of the requested category uniformly among the sets found on *other*
-    objects; if the category only holds sets of the requesting object, among those; if the category is
+    objects (the paper's transferability argument; with ``prefer_others=False``, among all the category's
+    sets, the object's own included, as the released code does); if the category only holds sets of the
+    requesting object, among those; if the category is
     empty or unknown, ``num_views`` uniform viewpoints (``fallback`` mode). With a ``capacity``, each
     category keeps its ``capacity`` most recent sets (first in, first out), so old selections made by an
     earlier model age out.
@@ -40,6 +42,7 @@ class ViewpointPool:
         capacity: most sets kept per category; ``None`` keeps all.
         num_views: ``n``, the size of every view set.
         fallback: uniform sampler for empty categories: ``"area"`` (uniform on the sphere) or ``"angle"``.
+        prefer_others: draw from sets found on other objects of the category when there are any.
 
     Raises:
         TypeError: ``capacity`` or ``num_views`` is not an int.
@@ -53,11 +56,16 @@ class ViewpointPool:
     """
 
     def __init__(
-        self, capacity: int | None = None, num_views: int = 3, fallback: Literal["area", "angle"] = "area"
+        self,
+        capacity: int | None = None,
+        num_views: int = 3,
+        fallback: Literal["area", "angle"] = "area",
+        prefer_others: bool = True,
     ) -> None:
         self.capacity = None if capacity is None else check_int("capacity", capacity, minimum=1)
         self.num_views = check_int("num_views", num_views, minimum=1)
         self.fallback = check_choice("fallback", fallback, ("area", "angle"))
+        self.prefer_others = check_type("prefer_others", prefer_others, bool)
         # category -> list of (object id, (n, 2) float32 view set), oldest first
         self._entries: OrderedDict[str, list[tuple[str, Tensor]]] = OrderedDict()
 
@@ -76,6 +84,10 @@ class ViewpointPool:
         sets.append((str(object_id), normalize_viewpoints(vp.detach().cpu()).to(torch.float32)))
         if self.capacity is not None and len(sets) > self.capacity:
             del sets[: len(sets) - self.capacity]
+
+    def clear(self) -> None:
+        """Forget every stored set (a pool rebuilt each epoch from the current model starts here)."""
+        self._entries.clear()
 
     def extend(self, categories: list[str], object_ids: list[str], viewpoints: Tensor) -> None:
         """:meth:`add` a batch: ``viewpoints (B, num_views, 2)`` with ``B`` categories and object ids."""
@@ -104,19 +116,23 @@ class ViewpointPool:
         return sum(len(sets) for sets in self._entries.values())
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(capacity={self.capacity}, num_views={self.num_views}, sets={len(self)})"
+        return (
+            f"{type(self).__name__}(capacity={self.capacity}, num_views={self.num_views}, "
+            f"prefer_others={self.prefer_others}, sets={len(self)})"
+        )
 
     # ------------------------------------------------------------------------------------ sampling
     def sample(self, category: str, object_id: str | None = None, generator: torch.Generator | None = None) -> Tensor:
         """One view set ``(num_views, 2)`` in degrees for an object of ``category``.
 
-        Prefers sets found on objects other than ``object_id``; falls back to the object's own sets,
-        then to uniform viewpoints when the category is empty.
+        Prefers sets found on objects other than ``object_id`` (unless ``prefer_others`` is off); falls back
+        to the object's own sets, then to uniform viewpoints when the category is empty.
         """
         sets = self._entries.get(str(category), [])
         if not sets:
             return sample_uniform_viewpoints(self.num_views, mode=self.fallback, generator=generator).to(torch.float32)
-        others = sets if object_id is None else [s for s in sets if s[0] != str(object_id)]
+        mixed = object_id is None or not self.prefer_others
+        others = sets if mixed else [s for s in sets if s[0] != str(object_id)]
         choices = others or sets
         index = int(torch.randint(len(choices), (1,), generator=generator))
         return choices[index][1].clone()
@@ -147,6 +163,7 @@ class ViewpointPool:
             "capacity": self.capacity,
             "num_views": self.num_views,
             "fallback": self.fallback,
+            "prefer_others": self.prefer_others,
             "entries": entries,
         }
 
@@ -161,6 +178,7 @@ class ViewpointPool:
             )
         self.capacity = state.get("capacity", self.capacity)
         self.fallback = state.get("fallback", self.fallback)
+        self.prefer_others = bool(state.get("prefer_others", self.prefer_others))
         self._entries = OrderedDict()
         for category, entry in state["entries"].items():
             views = torch.as_tensor(entry["viewpoints"], dtype=torch.float32).reshape(-1, self.num_views, 2)

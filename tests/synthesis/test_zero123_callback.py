@@ -43,9 +43,9 @@ def test_one_epoch_of_zero123_augmentation(tiny_dataset, tiny_zero123, tmp_path)
         trainer.fit(TinyUserModel(), datamodule=dm)
 
         samples = dm.generated_samples
-        # 21 training objects, round(0.1 * 21) = 2 objects at the end of epoch 0
-        assert [s["epoch"] for s in samples] == [0, 0]
-        assert len(dm.train_dataset()) == 21 + 2
+        # 21 training objects, round(0.1 * 21) = 2 objects before epoch 0 and 2 at the end of epoch 0
+        assert [s["epoch"] for s in samples] == [-1, -1, 0, 0]
+        assert len(dm.train_dataset()) == 21 + 4
         for s in samples:
             got = np.stack([np.asarray(Image.open(dm.generated_dir / s["dir"] / n)) for n in s["images"]])
             assert got.shape == (3, 32, 32, 4) and got.dtype == np.uint8
