@@ -51,8 +51,8 @@ def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, na
         assert saved["config"]["finetune_lr"] == "cosine"
         line = next(line for line in printed.splitlines() if line.startswith(f"| {row} |"))
         assert f"{100 * saved['results']['spherical']['iou@0.4']:.2f}" in line
-    # Epoch 0 of 2 ends with one search of 15 % of the 21 training objects; the baseline generates nothing.
-    assert runs[f"Ours ({title})"]["generated_samples"] == round(0.15 * 21)
+    # Two selections (before epoch 0 and after it) of 15 % of the 21 training objects; the baseline generates nothing.
+    assert runs[f"Ours ({title})"]["generated_samples"] == 2 * round(0.15 * 21)
     assert runs[f"{title} (no VTR)"]["generated_samples"] == 0
 
 
@@ -62,8 +62,8 @@ def test_quickstart_trains_with_the_callback_and_tests_every_view_set(tiny_datas
     outputs = _load("quickstart").main(str(tiny_dataset))
     printed = capsys.readouterr().out
 
-    # Epoch 0 of 2 ends with one search of 5 % of the 21 training objects (at least one object).
-    assert "generated samples: 1" in printed.splitlines()
+    # Two selections (before epoch 0 and after it) of 5 % of the 21 training objects (at least one object each).
+    assert "generated samples: 2" in printed.splitlines()
     metrics = {k: v for output in outputs for k, v in output.items()}
     for view_set in ("aligned", "hemispherical", "spherical"):
         for metric in ("iou@0.4", "fscore"):

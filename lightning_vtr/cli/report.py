@@ -1,7 +1,9 @@
-"""``lightning-vtr report``: the paper's comparison and ablations on your data (Table 1, a CSV and a chart).
+"""``lightning-vtr report``: the paper's comparison on your data (Table 1 with confidence intervals, paired
+differences, where the training views went and where the time went; CSVs and a chart).
 
 The flags set the fields of :class:`~lightning_vtr.experiments.report.ReportConfig` and of its
 :class:`~lightning_vtr.experiments.training.ExperimentConfig`; their defaults are
+:class:`~lightning_vtr.experiments.report.ReportConfig`'s and
 :func:`~lightning_vtr.experiments.report.default_experiment`'s.
 """
 
@@ -17,18 +19,20 @@ if TYPE_CHECKING:
 
 __all__ = ["HELP", "add_arguments", "report_config", "run"]
 
-HELP = "run the paper's comparison and ablations; write Table 1, a CSV and a chart"
+HELP = "run the paper's comparison over seeds; write Table 1 with CIs, paired differences, CSVs and a chart"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from lightning_vtr.experiments.report import STRATEGIES, default_experiment
-    from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS
+    from lightning_vtr.experiments.report import ABLATIONS, ReportConfig, default_experiment
+    from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, VARIANTS
 
     defaults = default_experiment()
+    report_defaults = ReportConfig(defaults)
     parser.description = (
-        "Pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on Aligned / "
-        "Hemispherical / Spherical and write report.md (the paper's Table 1 and ablations), results.csv and "
-        "report.png into --out. A killed report re-run skips every finished run."
+        "Per seed, pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on "
+        "Aligned / Hemispherical / Spherical and write report.md (Table 1 with 95 % confidence intervals, paired "
+        "differences to None-VTR and Random, the training views' distribution, the time split), results.csv, "
+        "differences.csv, report.png and timing.json into --out. A killed report re-run skips every finished run."
     )
     add = parser.add_argument
     add(
@@ -41,8 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seeds",
         type=int,
         nargs="+",
-        default=[defaults.seed],
-        help=f"seeds; several give mean ± std (default {defaults.seed})",
+        default=list(report_defaults.seeds),
+        help="seeds; each pretrains its own model, several give confidence intervals "
+        f"(default {' '.join(map(str, report_defaults.seeds))})",
     )
     add(
         "--pretrain-epochs",
@@ -58,16 +63,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add(
         "--strategies",
-        type=comma_separated(STRATEGIES),
-        default=list(STRATEGIES),
-        help=f"comma-separated subset of {','.join(STRATEGIES)} (default all)",
+        type=comma_separated(VARIANTS),
+        default=list(report_defaults.strategies),
+        help=f"comma-separated rows among {','.join(VARIANTS)} (default {','.join(report_defaults.strategies)})",
     )
-    add("--no-ablations", action="store_true", help="skip the K, pool and single-view ablations")
+    ablations = parser.add_mutually_exclusive_group()
+    ablations.add_argument(
+        "--ablations",
+        type=comma_separated(ABLATIONS),
+        default=list(report_defaults.ablations),
+        help=f"comma-separated ablations of the error-guided method to run, among {','.join(ABLATIONS)} (default none)",
+    )
+    ablations.add_argument(
+        "--no-ablations", action="store_true", help="run no ablation (the default; kept for old command lines)"
+    )
+    add(
+        "--test-triplets",
+        "--test-repeats",
+        dest="test_repeats",
+        metavar="T",
+        type=positive_int,
+        default=defaults.test_repeats,
+        help="fixed view sets each test object is tested on, the same for every strategy of a seed "
+        f"(default {defaults.test_repeats})",
+    )
     add(
         "--fraction",
         type=float,
         default=defaults.fraction,
-        help=f"share of training objects searched per epoch (default {defaults.fraction})",
+        help=f"share of training objects given new views per selection (default {defaults.fraction})",
     )
     add(
         "--finetune-lr",
@@ -87,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def report_config(args: argparse.Namespace, command: str | None = None) -> ReportConfig:
     """The :class:`~lightning_vtr.experiments.report.ReportConfig` that parsed ``args`` describe."""
-    from lightning_vtr.experiments.report import ABLATIONS, ReportConfig, default_experiment
+    from lightning_vtr.experiments.report import ReportConfig, default_experiment
 
     experiment = default_experiment(
         model=args.model,
@@ -98,6 +122,7 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
         finetune_epochs=args.finetune_epochs,
         fraction=args.fraction,
         finetune_lr=args.finetune_lr,
+        test_repeats=args.test_repeats,
         batch_size=args.batch_size,
         accelerator=args.accelerator,
         devices=args.devices,
@@ -106,7 +131,7 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
         experiment,
         seeds=args.seeds,
         strategies=args.strategies,
-        ablations=() if args.no_ablations else ABLATIONS,
+        ablations=[] if args.no_ablations else args.ablations,
         command=command,
     )
 

@@ -75,6 +75,9 @@ class VTRDataModule(L.LightningDataModule):
         generated_dir: where generated samples are written (default ``<trainer log dir>/vtr_generated``).
         max_generated: keep at most this many generated samples (oldest dropped first); ``None``: all.
         seed: fixes evaluation view choices.
+        test_repeats: items per test object, each with its own fixed choice of ``num_views`` views (the same
+            for every model tested with this ``seed``); test metrics average over all of them, every object
+            weighing the same. More repeats cut the variance of a test mean without more objects.
         embedded: build options for the embedded dataset (see ``lightning_vtr.data.builder.build_dataset``).
         n_views: deprecated alias of ``num_views``.
 
@@ -99,6 +102,7 @@ class VTRDataModule(L.LightningDataModule):
         generated_dir: str | None = None,
         max_generated: int | None = None,
         seed: int = 0,
+        test_repeats: int = 1,
         embedded: dict[str, Any] | None = None,
         n_views: int | None = None,
     ) -> None:
@@ -113,6 +117,7 @@ class VTRDataModule(L.LightningDataModule):
         check_int("num_views", num_views, minimum=1)
         check_int("batch_size", batch_size, minimum=1)
         check_int("num_workers", num_workers, minimum=0)
+        check_int("test_repeats", test_repeats, minimum=1)
         if max_generated is not None:
             check_int("max_generated", max_generated, minimum=0)
         if shapenet_rendering is not None:
@@ -134,6 +139,7 @@ class VTRDataModule(L.LightningDataModule):
         self._category_filter = tuple(categories) if categories is not None else None
         self.max_generated = max_generated
         self.seed = int(seed)
+        self.test_repeats = int(test_repeats)
         self.embedded = dict(embedded or {})
         self._generated_dir_arg = generated_dir
         self._records: list[ObjectRecord] | None = None
@@ -223,6 +229,7 @@ class VTRDataModule(L.LightningDataModule):
             transform=self.transform,
             train=train,
             seed=self.seed,
+            repeats=self.test_repeats if split == "test" else 1,
         )
 
     def _epoch(self) -> int:

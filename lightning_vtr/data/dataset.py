@@ -6,6 +6,7 @@ Both yield the batch dictionaries described in :mod:`lightning_vtr.protocol`.
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -122,13 +123,20 @@ class VTRDataset(Dataset):
     views an uninterrupted single-process run would; in evaluation (``train=False``) they are a fixed
     function of ``(seed, index)``.
 
+    In evaluation ``repeats > 1`` serves every object ``repeats`` times in a row (item ``i`` is object
+    ``i // repeats``), each time with another fixed choice of views: more view sets per object cut the
+    variance of a test mean at the cost of more forward passes, without more objects. The first choice of
+    an object is the one ``repeats=1`` makes; the others are distinct from it and from each other whenever
+    the object has enough views to make them so.
+
     Args:
-        records: the objects, one item each.
+        records: the objects, one item each (``repeats`` items each in evaluation).
         view_set: the view set the images are drawn from.
         num_views: images per item (at most the number of views of every object).
         transform: RGBA uint8 images -> model input (default :class:`ImageTransform`).
         train: draw views afresh every epoch (else a fixed choice per item).
         seed: seeds the view choice.
+        repeats: items per object, each with its own fixed view choice; must be 1 in training.
         n_views: deprecated alias of ``num_views``.
     """
 
@@ -141,6 +149,7 @@ class VTRDataset(Dataset):
         transform: ImageTransform | None = None,
         train: bool = False,
         seed: int = 0,
+        repeats: int = 1,
         n_views: int | None = None,
     ) -> None:
         num_views = renamed_argument("n_views", n_views, "num_views", num_views)
@@ -150,6 +159,11 @@ class VTRDataset(Dataset):
         self.transform = transform or ImageTransform()
         self.train = train
         self.seed = int(seed)
+        self.repeats = check_int("repeats", repeats, minimum=1)
+        if train and self.repeats != 1:
+            raise ValueError(
+                f"`repeats` must be 1 in training (views are drawn afresh every epoch there), got {self.repeats}"
+            )
         self.epoch = 0
         for rec in self.records:
             if view_set not in rec.views:
@@ -175,17 +189,38 @@ class VTRDataset(Dataset):
         return self.num_views
 
     def __len__(self) -> int:
-        return len(self.records)
+        return len(self.records) * self.repeats
 
     def view_indices(self, index: int) -> np.ndarray:
         """Which of the object's views item ``index`` uses (fixed in evaluation)."""
-        available = len(self.records[index].views[self.view_set][0])
-        key = [self.seed, self.epoch, index] if self.train else [self.seed, index]
-        rng = np.random.default_rng(key)
-        return rng.choice(available, size=self.num_views, replace=False)
+        obj, repeat = divmod(index, self.repeats)
+        available = len(self.records[obj].views[self.view_set][0])
+        if self.train:
+            return np.random.default_rng([self.seed, self.epoch, obj]).choice(available, self.num_views, replace=False)
+        return self._eval_choices(obj, available)[repeat]
+
+    def _eval_choices(self, obj: int, available: int) -> list[np.ndarray]:
+        """The ``repeats`` fixed view choices of object ``obj``: the first keyed ``(seed, obj)`` as with one
+        repeat, the others ``(seed, obj, r)``, redrawn while they repeat an earlier set of views (when the
+        object has enough views for ``repeats`` distinct sets)."""
+        distinct = math.comb(available, self.num_views) >= self.repeats
+        choices: list[np.ndarray] = []
+        seen: set[tuple[int, ...]] = set()
+        for repeat in range(self.repeats):
+            attempt = 0
+            while True:
+                key = [self.seed, obj] if repeat == 0 else [self.seed, obj, repeat, attempt]
+                chosen = np.random.default_rng(key).choice(available, size=self.num_views, replace=False)
+                views = tuple(sorted(chosen.tolist()))
+                if not distinct or views not in seen:
+                    break
+                attempt += 1
+            seen.add(views)
+            choices.append(chosen)
+        return choices
 
     def __getitem__(self, index: int) -> dict:
-        rec = self.records[index]
+        rec = self.records[index // self.repeats]
         paths, viewpoints = rec.views[self.view_set]
         chosen = self.view_indices(index)
         images = np.stack([load_rgba(paths[i]) for i in chosen])

@@ -101,7 +101,7 @@ def pitch_histogram(viewpoints: Tensor, edges: Sequence[float] = (-90, -60, -30,
     Returns:
         ``(len(edges) - 1,)`` float64 shares summing to 1 (all 0 for no viewpoints).
     """
-    pitch = check_viewpoints(viewpoints).reshape(-1, 2)[:, 1].to(torch.float64)
+    pitch = check_viewpoints(viewpoints).reshape(-1, 2)[:, 1].to(torch.float64).contiguous()
     bounds = torch.as_tensor(edges, dtype=torch.float64)
     index = torch.bucketize(pitch, bounds[1:-1], right=True)
     counts = torch.bincount(index, minlength=len(edges) - 1).to(torch.float64)

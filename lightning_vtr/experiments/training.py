@@ -10,8 +10,10 @@ import json
 import math
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import lightning as L
@@ -32,8 +34,11 @@ __all__ = [
     "FINETUNE_LR_SCHEDULES",
     "MODELS",
     "STRATEGIES",
+    "VARIANTS",
     "CosineFineTuning",
     "ExperimentConfig",
+    "StageTimer",
+    "StrategyVariant",
     "evaluate",
     "make_datamodule",
     "make_model",
@@ -46,9 +51,94 @@ __all__ = [
 MODELS: dict[str, type[VoxelReconstructionModule]] = {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
 #: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
 FINETUNE_LR_SCHEDULES = ("cosine", "constant")
-#: View strategy names of :func:`make_strategy`, in the row order of the paper's Table 1: ``"none"`` (no
-#: augmentation), then every selector of :data:`lightning_vtr.selection.SELECTORS`.
+#: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
+#: :data:`lightning_vtr.selection.SELECTORS` with its defaults. Each is a name in :data:`VARIANTS`, which
+#: :func:`make_strategy` takes.
 STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
+
+
+@dataclass(frozen=True)
+class StrategyVariant:
+    """A named view strategy: a selector of :data:`lightning_vtr.selection.SELECTORS` and its settings.
+
+    Attributes:
+        selector: the selector's registry name; ``None`` for no augmentation (no callback).
+        selector_kwargs: arguments of the selector class.
+        callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`.
+        title: the row title in the report's tables.
+    """
+
+    selector: str | None
+    selector_kwargs: Mapping[str, Any] = field(default_factory=dict)
+    callback_kwargs: Mapping[str, Any] = field(default_factory=dict)
+    title: str = ""
+
+    def __post_init__(self) -> None:
+        if self.selector is not None:
+            check_choice("selector", self.selector, SELECTORS)
+        # read-only copies: a registry entry cannot be changed through a caller's dict
+        object.__setattr__(self, "selector_kwargs", MappingProxyType(dict(self.selector_kwargs)))
+        object.__setattr__(self, "callback_kwargs", MappingProxyType(dict(self.callback_kwargs)))
+
+
+_VISIBLE_NMS = {"score": "visible", "min_separation": 30.0}
+#: Strategy name -> :class:`StrategyVariant`, in the report's row order: the paper's Table 1 strategies
+#: (:data:`STRATEGIES`, each selector with its package defaults, so ``"error_guided"`` is whatever
+#: ``ErrorGuidedSelector()`` and ``ErrorGuidedViewAugmentation()`` default to), the second random baseline,
+#: the paper's exact rule, and the variants of the error-guided method compared to pick its default:
+#:
+#: * ``"random"``: angle-uniform views (uniform yaw and pitch, the released code's sampler); ``"random_area"``:
+#:   uniform on the sphere;
+#: * ``"paper"``: the paper's score (binary error summed over the first-hit map), hard top-n bins, a
+#:   per-category pool that keeps every selection and prefers other objects' view sets, the first selection
+#:   from the pretrained model, as many objects searched as given views;
+#: * ``"released"``: the released code's score (soft error in ground-truth voxels, mean over hit pixels) and
+#:   pool (rebuilt every selection, sampled among all objects' sets) and a search over 35 % of the objects;
+#: * ``"visible"``: the side-aware score of what a camera would see wrong; ``"visible_nms"``: with non-maximum
+#:   suppression of bins within 30 degrees of a chosen one or of its antipode; ``"visible_tau"``: the same
+#:   suppression, bins sampled with probability proportional to solid angle x score (temperature 1) instead
+#:   of the hard top n; ``"visible_nms_search"``: ``"visible_nms"`` searching 35 % of the objects into a pool
+#:   rebuilt at every selection.
+#:
+#: :func:`make_strategy` and :func:`run_strategy` take these names; their ``selector_kwargs`` and
+#: ``callback_kwargs`` go over the variant's.
+VARIANTS: dict[str, StrategyVariant] = {
+    "none": StrategyVariant(None, title="None-VTR"),
+    "nature": StrategyVariant("nature", title="Nature"),
+    "random": StrategyVariant("random", {"mode": "angle"}, title="Random"),
+    "random_area": StrategyVariant("random", {"mode": "area"}, title="Random (area-uniform)"),
+    "viat": StrategyVariant("viat", title="VIAT"),
+    "mvtn": StrategyVariant("mvtn", title="MVTN"),
+    "error_guided": StrategyVariant("error_guided", title="Ours"),
+    "paper": StrategyVariant(
+        "error_guided",
+        {"score": "paper", "min_separation": None, "temperature": None},
+        {
+            "use_pool": True,
+            "pool_capacity": None,
+            "pool_refresh": False,
+            "pool_prefer_others": True,
+            "select_at_start": True,
+            "search_fraction": None,
+        },
+        title="Ours (paper rule)",
+    ),
+    "released": StrategyVariant(
+        "error_guided",
+        {"score": "released"},
+        {"pool_refresh": True, "pool_prefer_others": False, "search_fraction": 0.35},
+        title="Released-code rule",
+    ),
+    "visible": StrategyVariant("error_guided", {"score": "visible"}, title="Visible"),
+    "visible_nms": StrategyVariant("error_guided", _VISIBLE_NMS, title="Visible + NMS"),
+    "visible_tau": StrategyVariant("error_guided", {**_VISIBLE_NMS, "temperature": 1.0}, title="Visible + NMS, tau 1"),
+    "visible_nms_search": StrategyVariant(
+        "error_guided",
+        _VISIBLE_NMS,
+        {"search_fraction": 0.35, "pool_refresh": True},
+        title="Visible + NMS, search 35 %",
+    ),
+}
 
 
 def __getattr__(name: str) -> Any:
@@ -73,10 +163,13 @@ class ExperimentConfig:
         pretrain_epochs: epochs on Aligned before any view strategy (the paper's pre-trained model).
         finetune_epochs: epochs of fine-tuning, the same for every strategy (including none).
         batch_size, num_workers, seed: as usual. ``image_size`` ``None`` takes the preset's.
-        fraction: share of training objects searched per epoch by the callback.
+        fraction: share of training objects the callback gives new views per selection (its ``fraction``).
         accelerator, devices, precision: passed to the Trainer; ``devices`` given as a string of digits
             (from a command line) becomes an int.
         out: where runs are written.
+        test_repeats: view sets per test object, each a fixed choice of the model's ``num_views`` views of the
+            tested view set (``VTRDataModule(test_repeats=...)``); the same for every strategy of a seed, so
+            differences between strategies are paired. More repeats cut the variance of a test mean cheaply.
         embedded: options of the embedded procedural dataset (``data=None``).
         finetune_lr: learning-rate schedule of fine-tuning, the same for every strategy: ``"cosine"``
             anneals each parameter group's rate from the model's own value to 0 over ``finetune_epochs``
@@ -101,6 +194,7 @@ class ExperimentConfig:
     devices: int | str = 1
     precision: str = "32-true"
     finetune_lr: str = "cosine"
+    test_repeats: int = 1
     out: str = "runs/vtr"
     embedded: dict[str, Any] = field(default_factory=dict)
     model_kwargs: dict[str, Any] = field(default_factory=dict)
@@ -108,6 +202,7 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         check_choice("finetune_lr", self.finetune_lr, FINETUNE_LR_SCHEDULES)
+        check_int("test_repeats", self.test_repeats, minimum=1)
         if isinstance(self.devices, str) and self.devices.isdigit():
             self.devices = int(self.devices)
 
@@ -135,6 +230,134 @@ class CosineFineTuning(L.Callback):
                 group["lr"] = group["initial_lr"] * factor
 
 
+class StageTimer(L.Callback):
+    """Wall time per stage of the fits and tests it watches, in :attr:`seconds` (accumulated over calls).
+
+    Stages: ``fit`` (the whole ``trainer.fit``), ``train_steps`` (training batches: forward, backward,
+    optimizer), ``train_data`` (the rest of the training epochs: fetching and collating batches, loader
+    rebuilds), ``validation``, ``augmentation`` (the hooks of the callbacks between :meth:`bracket`'s two
+    markers: an augmentation callback's selection and synthesis), ``fit_other`` (what remains of ``fit``:
+    setup, checkpoints, other hooks); ``test`` (the whole ``trainer.test``), ``test_steps`` (test batches) and
+    ``test_data`` (the rest of ``test``: loading the test items). Give it to the Trainer before the callback
+    it brackets.
+    """
+
+    STAGES = (
+        "fit",
+        "train_steps",
+        "train_data",
+        "validation",
+        "augmentation",
+        "fit_other",
+        "test",
+        "test_steps",
+        "test_data",
+    )
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = dict.fromkeys(self.STAGES, 0.0)
+        self._started: dict[str, float] = {}
+        self._epoch_seconds = 0.0
+
+    def _start(self, key: str) -> None:
+        self._started[key] = time.perf_counter()
+
+    def _stop(self, key: str) -> float:
+        start = self._started.pop(key, None)
+        return 0.0 if start is None else time.perf_counter() - start
+
+    def bracket(self, callback: L.Callback | None) -> list[L.Callback]:
+        """``[opening marker, callback, closing marker]``: the time ``callback``'s ``on_train_start`` and
+        ``on_train_epoch_end`` take counts as ``augmentation`` (``[]`` for ``None``)."""
+        if callback is None:
+            return []
+        return [_Marker(self, opening=True), callback, _Marker(self, opening=False)]
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._epoch_seconds = 0.0
+        self._fit_stages = {k: self.seconds[k] for k in ("train_steps", "validation", "augmentation")}
+        self._start("fit")
+
+    def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        fit = self._stop("fit")
+        spent = {k: self.seconds[k] - self._fit_stages[k] for k in self._fit_stages}
+        train_data = max(0.0, self._epoch_seconds - spent["train_steps"] - spent["validation"])
+        self.seconds["fit"] += fit
+        self.seconds["train_data"] += train_data
+        self.seconds["fit_other"] += max(0.0, fit - train_data - sum(spent.values()))
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._start("epoch")
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._epoch_seconds += self._stop("epoch")
+
+    def on_train_batch_start(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
+    ) -> None:
+        self._start("train_steps")
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        self.seconds["train_steps"] += self._stop("train_steps")
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.sanity_checking:
+            self._start("validation")
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.seconds["validation"] += self._stop("validation")
+
+    def on_test_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._test_steps = self.seconds["test_steps"]
+        self._start("test")
+
+    def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        test = self._stop("test")
+        self.seconds["test"] += test
+        self.seconds["test_data"] += max(0.0, test - (self.seconds["test_steps"] - self._test_steps))
+
+    def on_test_batch_start(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int, dataloader_idx: int = 0
+    ) -> None:
+        self._start("test_steps")
+
+    def on_test_batch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
+        self.seconds["test_steps"] += self._stop("test_steps")
+
+
+class _Marker(L.Callback):
+    """One side of :meth:`StageTimer.bracket`: opens or closes the timer's ``augmentation`` stage."""
+
+    def __init__(self, timer: StageTimer, opening: bool) -> None:
+        self.timer, self.opening = timer, opening
+
+    def _mark(self) -> None:
+        if self.opening:
+            self.timer._start("augmentation")
+        else:
+            self.timer.seconds["augmentation"] += self.timer._stop("augmentation")
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._mark()
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._mark()
+
+    @property
+    def state_key(self) -> str:  # two markers of one timer in a Trainer need distinct keys
+        return self._generate_state_key(opening=self.opening)
+
+
 def make_model(config: ExperimentConfig) -> VoxelReconstructionModule:
     """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``."""
     return MODELS[check_choice("model", config.model, MODELS)](preset=config.preset, **config.model_kwargs)
@@ -159,6 +382,7 @@ def make_datamodule(
         batch_size=config.batch_size,
         num_workers=config.num_workers,
         seed=config.seed,
+        test_repeats=config.test_repeats,
         embedded=config.embedded,
     )
 
@@ -182,8 +406,18 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
     return L.Trainer(callbacks=callbacks or [], **kwargs)
 
 
-def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConfig, run_dir: Path) -> dict:
-    """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries)."""
+def evaluate(
+    model: L.LightningModule,
+    dm: VTRDataModule,
+    config: ExperimentConfig,
+    run_dir: Path,
+    *,
+    timer: StageTimer | None = None,
+) -> dict:
+    """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries).
+
+    ``timer`` (a :class:`StageTimer`) adds the test's time to its ``test`` stages.
+    """
     kwargs: dict[str, Any] = dict(
         accelerator=config.accelerator,
         default_root_dir=str(run_dir),
@@ -194,12 +428,18 @@ def evaluate(model: L.LightningModule, dm: VTRDataModule, config: ExperimentConf
     kwargs.update(config.trainer_kwargs)
     # One process: a DistributedSampler would pad the test set with duplicates and bias the means.
     kwargs["devices"] = 1
+    if timer is not None:
+        kwargs["callbacks"] = [*kwargs.get("callbacks", []), timer]
     trainer = L.Trainer(**kwargs)
     return results_from_test_output(trainer.test(model, datamodule=dm, verbose=False))
 
 
 def pretrain(config: ExperimentConfig) -> Path:
-    """Train on Aligned for ``pretrain_epochs``; returns the checkpoint path (reused when it exists)."""
+    """Train on Aligned for ``pretrain_epochs``; returns the checkpoint path (reused when it exists).
+
+    Beside the checkpoint, ``timing.json`` holds the fit's :class:`StageTimer` stages (seconds; the part
+    after the last resume when the fit was interrupted).
+    """
     run_dir = Path(config.out) / "pretrain"
     ckpt = run_dir / "pretrained.ckpt"
     if ckpt.is_file():
@@ -209,9 +449,13 @@ def pretrain(config: ExperimentConfig) -> Path:
     dm = make_datamodule(config, model)
     # The one checkpoint callback, given to the Trainer so that it adds no default one saving twice.
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
-    trainer = _trainer(config, run_dir, config.pretrain_epochs, [checkpoints])
+    timer = StageTimer()
+    trainer = _trainer(config, run_dir, config.pretrain_epochs, [timer, checkpoints])
     last = run_dir / "checkpoints" / "last.ckpt"
-    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
+    resumed = last.is_file()
+    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resumed else None)
+    if trainer.is_global_zero:
+        _write_timing(run_dir / "timing.json", timer, resumed=resumed)
     # `pretrained.ckpt` marks the pretraining done, so it must appear whole or not at all. Lightning writes
     # to a path (every rank joins, rank 0 writes), so the checkpoint goes to a scratch file first.
     scratch = run_dir / "pretrained.partial.ckpt"
@@ -223,6 +467,10 @@ def pretrain(config: ExperimentConfig) -> Path:
     return ckpt
 
 
+def _write_timing(path: Path, timer: StageTimer, **extra: Any) -> None:
+    atomic_write(path, json.dumps({"seconds": timer.seconds, **extra}, indent=1))
+
+
 def make_strategy(
     name: str,
     config: ExperimentConfig,
@@ -230,25 +478,27 @@ def make_strategy(
     selector_kwargs: dict[str, Any] | None = None,
     callback_kwargs: dict[str, Any] | None = None,
 ) -> L.Callback | None:
-    """The callback for a view strategy name (``"none"`` -> ``None``).
+    """The callback of a named view strategy of :data:`VARIANTS` (``None`` for ``"none"``).
 
     Args:
-        name: one of :data:`STRATEGIES`: ``"none"`` or a selector name of
-            :data:`lightning_vtr.selection.SELECTORS` (``"nature"``, ``"random"``, ``"viat"``, ``"mvtn"``,
-            ``"error_guided"``).
+        name: a name in :data:`VARIANTS`: ``"none"``, a strategy of the paper's Table 1 (``"nature"``,
+            ``"random"``, ``"viat"``, ``"mvtn"``, ``"error_guided"``), ``"random_area"``, ``"paper"`` or a
+            variant of the error-guided method (``"released"``, ``"visible"``, ...).
         config: supplies ``fraction`` and ``seed`` of the callback.
         synthesizer: the callback's synthesizer (``None``: mesh rendering).
-        selector_kwargs: arguments of the selector class (e.g. ``{"k": 15}`` for error-guided).
-        callback_kwargs: further arguments of
-            :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` (e.g. ``{"use_pool": False}``).
+        selector_kwargs: arguments of the selector class, over the variant's (e.g. ``{"k": 15}`` for
+            error-guided).
+        callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, over the
+            variant's and the config's (e.g. ``{"use_pool": False}``).
 
     Raises:
-        ValueError: ``name`` is not in :data:`STRATEGIES`.
+        ValueError: ``name`` is not in :data:`VARIANTS`.
     """
-    if check_choice("name", name, STRATEGIES) == "none":
+    variant = VARIANTS[check_choice("name", name, VARIANTS)]
+    if variant.selector is None:
         return None
-    selector = make_selector(name, **(selector_kwargs or {}))
-    options = {"fraction": config.fraction, "seed": config.seed, **(callback_kwargs or {})}
+    selector = make_selector(variant.selector, **{**variant.selector_kwargs, **(selector_kwargs or {})})
+    options = {"fraction": config.fraction, "seed": config.seed, **variant.callback_kwargs, **(callback_kwargs or {})}
     return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
 
 
@@ -275,8 +525,14 @@ def run_strategy(
     """Fine-tune the pretrained model with one view strategy and test it; cached in ``results.json``.
 
     The run lives in ``<config.out>/<run_name or name>``; its final weights in ``checkpoints/last.ckpt``.
-    Without ``callback``, :func:`make_strategy` builds it from ``name``, ``synthesizer``,
-    ``selector_kwargs`` and ``callback_kwargs``.
+    Without ``callback``, :func:`make_strategy` builds it from ``name`` (a name in :data:`VARIANTS`),
+    ``synthesizer``, ``selector_kwargs`` and ``callback_kwargs``.
+
+    Returns:
+        The ``results.json`` payload: ``strategy``, ``config``, ``train_seconds`` (the fit),
+        ``eval_seconds`` (the test), ``timing`` (:class:`StageTimer` stages of both, seconds; for the part
+        after the last resume when the fit was interrupted), ``generated_samples`` and ``results``
+        (``{view_set: {metric: value}}``, per-category entries under ``"<view_set>/<category>"``).
     """
     run_dir = Path(config.out) / (run_name or name)
     result_file = run_dir / "results.json"
@@ -299,7 +555,8 @@ def run_strategy(
     if callback is None:
         callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs)
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
-    callbacks = [c for c in (callback, checkpoints) if c is not None]
+    timer = StageTimer()
+    callbacks = [timer, *timer.bracket(callback), checkpoints]
     if config.finetune_lr == "cosine":
         callbacks.append(CosineFineTuning(config.finetune_epochs))
     trainer = _trainer(config, run_dir, config.finetune_epochs, callbacks)
@@ -307,11 +564,15 @@ def run_strategy(
     start = time.perf_counter()
     trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
     train_seconds = time.perf_counter() - start
-    results = evaluate(model, dm, config, run_dir)
+    start = time.perf_counter()
+    results = evaluate(model, dm, config, run_dir, timer=timer)
+    eval_seconds = time.perf_counter() - start
     payload = {
         "strategy": name,
         "config": _comparable(config),
         "train_seconds": train_seconds,
+        "eval_seconds": eval_seconds,
+        "timing": dict(timer.seconds),
         "generated_samples": len(dm.generated_samples),
         "results": results,
     }

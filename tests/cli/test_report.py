@@ -8,8 +8,8 @@ import pytest
 
 from lightning_vtr.cli import main
 from lightning_vtr.cli.report import add_arguments
-from lightning_vtr.experiments.report import ABLATIONS, STRATEGIES, ReportConfig, default_experiment
-from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS
+from lightning_vtr.experiments.report import MAIN_STRATEGIES, ReportConfig, default_experiment
+from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, VARIANTS
 
 
 @pytest.fixture
@@ -31,6 +31,8 @@ def test_choices_are_the_registries():
     choices = {a.dest: a.choices for a in parser._actions}
     assert list(choices["model"]) == list(MODELS)
     assert tuple(choices["finetune_lr"]) == FINETUNE_LR_SCHEDULES
+    strategies = next(a for a in parser._actions if a.dest == "strategies")
+    assert strategies.type(",".join(VARIANTS)) == list(VARIANTS)  # every variant is a valid row
 
 
 def test_cli_builds_the_report_config(captured):
@@ -40,8 +42,11 @@ def test_cli_builds_the_report_config(captured):
         "0",
         "1",
         "--strategies",
-        "none,viat",
-        "--no-ablations",
+        "none,viat,visible_nms",
+        "--ablations",
+        "k,single_view",
+        "--test-triplets",
+        "2",
         "--fraction",
         "0.1",
         "--pretrain-epochs",
@@ -60,8 +65,13 @@ def test_cli_builds_the_report_config(captured):
     assert main(argv) == 0
     config = captured[-1]
     assert isinstance(config, ReportConfig)
-    assert (config.seeds, config.strategies, config.ablations) == ([0, 1], ["none", "viat"], [])
+    assert (config.seeds, config.strategies, config.ablations) == (
+        [0, 1],
+        ["none", "viat", "visible_nms"],
+        ["k", "single_view"],
+    )
     assert config.experiment == default_experiment(
+        test_repeats=2,
         model="lrgt",
         data="/data/vtr",
         fraction=0.1,
@@ -77,14 +87,21 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert main(["report"]) == 0
     config = captured[-1]
     assert config.experiment == ReportConfig().experiment == default_experiment()
-    assert config.strategies == list(STRATEGIES) and config.ablations == list(ABLATIONS)
-    assert config.seeds == [0]
+    assert config.strategies == list(MAIN_STRATEGIES) == ["none", "random", "error_guided", "paper"]
+    assert config.ablations == [] and config.seeds == [0, 1, 2]
+    assert config.experiment.test_repeats == 4
+    # Old command lines: --no-ablations is the default now, still accepted; --test-repeats names --test-triplets.
+    assert main(["report", "--no-ablations", "--test-repeats", "3"]) == 0
+    assert captured[-1].ablations == [] and captured[-1].experiment.test_repeats == 3
 
 
 @pytest.mark.parametrize(
     "argv, message",
     [
         (["--strategies", "none,ours"], "invalid choice(s) 'ours'"),
+        (["--ablations", "k,dropout"], "invalid choice(s) 'dropout'"),
+        (["--ablations", "k", "--no-ablations"], "not allowed with argument"),
+        (["--test-triplets", "0"], "positive integer"),
         (["--model", "unet"], "invalid choice: 'unet'"),
         (["--finetune-lr", "linear"], "invalid choice: 'linear'"),
         (["--pretrain-epochs", "0"], "positive integer"),

@@ -86,6 +86,21 @@ def test_test_dataloaders_are_the_three_view_sets(tiny_dataset):
     assert pitch[2].min() < 0.0  # only the spherical set looks from below
 
 
+def test_test_repeats_serve_every_test_object_t_times_and_only_in_test(tiny_dataset):
+    dm = _dm(tiny_dataset, batch_size=64, test_repeats=3)
+    batches = [next(iter(dl)) for dl in dm.test_dataloader()]
+    for batch in batches:
+        assert len(batch["object_id"]) == 3 * 6
+        counts = {oid: batch["object_id"].count(oid) for oid in batch["object_id"]}
+        assert set(counts.values()) == {3}
+    # Every strategy of a seed is tested on the same items: a second datamodule serves the same views.
+    again = [next(iter(dl)) for dl in _dm(tiny_dataset, batch_size=64, test_repeats=3).test_dataloader()]
+    assert all(torch.equal(a["viewpoints"], b["viewpoints"]) for a, b in zip(batches, again))
+    assert len(dm.val_dataloader().dataset) == 3 and len(dm.train_dataset()) == 21
+    with pytest.raises(ValueError, match=r"`test_repeats` must be an int >= 1, got 0"):
+        VTRDataModule(str(tiny_dataset), test_repeats=0)
+
+
 def test_add_samples_persists_and_serves_from_next_loader(tiny_dataset, tmp_path):
     dm = _dm(tiny_dataset, generated_dir=str(tmp_path / "gen"))
     n_train = len(dm.train_dataset())

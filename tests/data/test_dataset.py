@@ -70,6 +70,33 @@ def test_vtr_dataset_num_views_and_deprecated_alias(tiny_dataset):
         VTRDataset(records, "aligned", num_views=0)
 
 
+def test_evaluation_repeats_serve_each_object_with_distinct_fixed_view_sets(tiny_dataset):
+    records = [r for r in scan_dataset(tiny_dataset) if r.split == "test"]
+    single = VTRDataset(records, "spherical", num_views=3, transform=ImageTransform(8))
+    first = VTRDataset(records, "spherical", num_views=3, transform=ImageTransform(8), repeats=4)
+    again = VTRDataset(records, "spherical", num_views=3, transform=ImageTransform(8), repeats=4)
+    assert len(first) == 4 * len(records)
+    ids = [first[i]["object_id"] for i in range(len(first))]
+    assert ids == [r.object_id for r in records for _ in range(4)]  # T items in a row per object
+    for obj in range(len(records)):
+        choices = [first.view_indices(4 * obj + r).tolist() for r in range(4)]
+        assert len({tuple(sorted(c)) for c in choices}) == 4  # distinct view sets of one object
+        assert choices == [again.view_indices(4 * obj + r).tolist() for r in range(4)]  # the same in every build
+        assert choices[0] == single.view_indices(obj).tolist()  # the first is the one-repeat choice
+        item = first[4 * obj + 2]
+        views = np.asarray(records[obj].views["spherical"][1])[choices[2]]
+        assert torch.equal(item["viewpoints"], torch.as_tensor(views, dtype=torch.float32))
+    other_seed = VTRDataset(records, "spherical", num_views=3, transform=ImageTransform(8), repeats=4, seed=1)
+    assert [other_seed.view_indices(i).tolist() for i in range(4)] != [first.view_indices(i).tolist() for i in range(4)]
+    # An object with fewer view sets than repeats repeats some: 8 of its 8 views make a single set.
+    few = VTRDataset(records[:1], "spherical", num_views=8, transform=ImageTransform(8), repeats=3)
+    assert [sorted(few.view_indices(i).tolist()) for i in range(3)] == [list(range(8))] * 3
+    with pytest.raises(ValueError, match=r"`repeats` must be 1 in training"):
+        VTRDataset(records, "aligned", train=True, repeats=2)
+    with pytest.raises(ValueError, match=r"`repeats` must be an int >= 1, got 0"):
+        VTRDataset(records, "aligned", repeats=0)
+
+
 def test_generated_sample_and_index_are_written_atomically(tmp_path):
     images = np.zeros((2, 4, 4, 4), np.uint8)
     images[1, ..., 1] = 200

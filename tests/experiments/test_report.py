@@ -1,4 +1,5 @@
-"""run_report: tables equal the runs' results, files, resume, multi-seed spread; ReportConfig and its runs."""
+"""run_report: tables equal the runs' results, files, resume, confidence intervals, paired differences, view
+distributions, the time split; ReportConfig and its runs."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import pytest
 
 import lightning_vtr.experiments.training as experiment
 from lightning_vtr.experiments.report import (
+    ABLATIONS,
+    MAIN_STRATEGIES,
     STRATEGIES,
     STRATEGY_TITLES,
     ReportConfig,
@@ -18,7 +21,7 @@ from lightning_vtr.experiments.report import (
     default_experiment,
     run_report,
 )
-from lightning_vtr.experiments.training import ExperimentConfig
+from lightning_vtr.experiments.training import VARIANTS, ExperimentConfig
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.selection import SELECTORS
 
@@ -75,6 +78,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         finetune_epochs=2,  # epoch 0 ends with one search, so the callback really runs
         fraction=0.15,
         batch_size=4,
+        test_repeats=2,
         accelerator="cpu",
         trainer_kwargs={
             "limit_train_batches": 1,
@@ -108,7 +112,8 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     expected = ExperimentConfig(**{**vars(experiment_config), "seed": 0, "out": str(tmp_path / "report" / "seed_0")})
     assert all(c == expected for c in counters["configs"])
     searched = json.loads((seed_dir / "error_guided_k15" / "results.json").read_text())
-    assert searched["generated_samples"] == round(0.15 * 21)
+    # Two selections (before epoch 0 and after it) of 15 % of the 21 training objects each.
+    assert searched["generated_samples"] == 2 * round(0.15 * 21)
 
     # One checkpoint callback per run: no duplicate "-v1" files beside each epoch's checkpoint.
     for run in ("pretrain", "none", "error_guided"):
@@ -116,7 +121,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         assert len(names) == 2 and names[1] == "last.ckpt" and names[0].startswith("epoch="), (run, names)
 
     # Files.
-    for name in ("report.md", "results.csv", "report.png", "timing.json"):
+    for name in ("report.md", "results.csv", "differences.csv", "report.png", "timing.json"):
         assert (out / name).is_file(), name
     assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     runs = {
@@ -130,7 +135,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     assert markdown == result["markdown"]
     assert "Command: `lightning-vtr report" in markdown and "Total wall time:" in markdown
     tables = _parse_tables(markdown)
-    header, rows = tables["Table 1: robustness to view transformations (%, test set)"]
+    header, rows = tables["Table 1: robustness to view transformations (%, test set; one seed)"]
     assert header == ["Method"] + [
         f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "F-score")
     ]
@@ -149,6 +154,32 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
         _pct(runs["single_view_error_guided"]["results"][s][m]) for s in VIEW_SETS for m in ("iou@0.4", "fscore")
     ]
     assert "Ablation: viewpoint pool (%)" not in tables
+
+    # One seed: the paired difference to None-VTR without an interval; no Random row, so no table against it.
+    _, rows = tables["Paired difference to None-VTR (mIoU points)"]
+    diffs = [runs["error_guided"]["results"][s]["iou@0.4"] - runs["none"]["results"][s]["iou@0.4"] for s in VIEW_SETS]
+    assert rows == {"Ours": [f"{100 * d:+.2f}, {int(d != 0)}/1" for d in diffs]}
+    assert "Paired difference to Random (mIoU points)" not in tables
+    # The views the callback generated: a start selection and one after epoch 0, 3 objects each.
+    _, rows = tables["Where the training views went"]
+    assert list(rows) == ["Ours"] and rows["Ours"][0] == "6"
+    assert sum(float(v) for v in rows["Ours"][1:7]) == pytest.approx(100, abs=0.2)
+    # Where the time went: measured stages of every fit and test, in results.json, timing.json and the report.
+    for name in ("none", "error_guided"):
+        timing = runs[name]["timing"]
+        assert timing["fit"] > 0 and timing["test"] > 0 and timing["test_steps"] > 0
+        assert (timing["augmentation"] > 0) == (name == "error_guided")
+    split = json.loads((out / "timing.json").read_text())["split"]
+    assert split["fine_tuning"]["augmentation"] == pytest.approx(
+        runs["error_guided_k15"]["timing"]["augmentation"] + runs["error_guided"]["timing"]["augmentation"]
+    )
+    assert (
+        split["pretraining"]["total"]
+        == json.loads((seed_dir / "pretrain" / "timing.json").read_text())["seconds"]["fit"]
+    )
+    time_rows = _parse_tables(markdown)["Where the time goes"][1]
+    assert time_rows["Pretraining"][0] == f"{split['pretraining']['total']:.1f}"
+    assert time_rows["none"][0] == f"{runs['none']['train_seconds']:.1f}"
 
     # CSV: one row per run x view set, the same values unrounded.
     with (out / "results.csv").open() as f:
@@ -172,16 +203,20 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     assert len(json.loads((out / "timing.json").read_text())["invocations"]) == 2
 
 
-def test_several_seeds_print_mean_and_sample_std():
+def test_several_seeds_print_mean_and_95_percent_confidence_interval():
     payloads = {
         "none": {
             0: {"results": {"aligned": {"iou@0.4": 0.5, "fscore": 0.2}}},
             1: {"results": {"aligned": {"iou@0.4": 0.7, "fscore": 0.4}}},
+            2: {"results": {"aligned": {"iou@0.4": 0.6, "fscore": 0.3}}},
         }
     }
     _, rows = _parse_tables("## t\n" + _table({"None-VTR": "none"}, payloads, ("iou@0.4", "fscore"), [0, 1]))["t"]
-    # mean 60, sample std sqrt(((50-60)^2 + (70-60)^2) / 1) = 14.14; missing sets print "-".
-    assert rows["None-VTR"] == ["60.00 ± 14.14", "30.00 ± 14.14", "-", "-", "-", "-"]
+    # mean 60, sample std 14.142, half-width t(0.975, 1) * 14.142 / sqrt(2) = 12.706 * 10; missing sets print "-".
+    assert rows["None-VTR"] == ["60.00 ± 127.06", "30.00 ± 127.06", "-", "-", "-", "-"]
+    _, rows = _parse_tables("## t\n" + _table({"None-VTR": "none"}, payloads, ("iou@0.4",), [0, 1, 2]))["t"]
+    # std 10 points, half-width t(0.975, 2) * 10 / sqrt(3) = 4.3027 * 5.7735 = 24.84.
+    assert rows["None-VTR"] == ["60.00 ± 24.84", "-", "-"]
     _, rows = _parse_tables("## t\n" + _table({"None-VTR": "none"}, payloads, ("iou@0.4",), [1]))["t"]
     assert rows["None-VTR"] == ["70.00", "-", "-"]
 
@@ -189,7 +224,9 @@ def test_several_seeds_print_mean_and_sample_std():
 def test_strategies_are_none_then_the_selector_registry_each_with_a_row_title():
     assert STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "error_guided")
     assert STRATEGIES == ("none", *SELECTORS) and STRATEGIES is experiment.STRATEGIES
-    assert list(STRATEGY_TITLES) == list(STRATEGIES)
+    assert list(STRATEGY_TITLES) == list(VARIANTS)
+    assert [STRATEGY_TITLES[s] for s in STRATEGIES] == ["None-VTR", "Nature", "Random", "VIAT", "MVTN", "Ours"]
+    assert MAIN_STRATEGIES == ("none", "random", "error_guided", "paper")
 
 
 def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_directory():
@@ -209,10 +246,18 @@ def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_dire
         8,
     )
     assert ReportConfig().experiment is not ReportConfig().experiment
+    # Three seeds, the main comparison, no ablation, every test object on 4 view sets.
+    assert (default.test_repeats, ExperimentConfig().test_repeats) == (4, 1)
+    assert (ReportConfig().seeds, ReportConfig().strategies, ReportConfig().ablations) == (
+        [0, 1, 2],
+        ["none", "random", "error_guided", "paper"],
+        [],
+    )
 
 
 def test_plan_adds_the_runs_the_ablations_need():
-    names = [r.name for r in _plan(ReportConfig(strategies=["viat"]))]
+    assert [r.name for r in _plan(ReportConfig())] == ["none", "random", "error_guided", "paper"]
+    names = [r.name for r in _plan(ReportConfig(strategies=["viat"], ablations=ABLATIONS))]
     assert names == [
         "none",
         "viat",
@@ -224,13 +269,20 @@ def test_plan_adds_the_runs_the_ablations_need():
         "single_view_none",
         "single_view_error_guided",
     ]
-    no_pool = next(r for r in _plan(ReportConfig()) if r.name == "error_guided_no_pool")
+    no_pool = next(r for r in _plan(ReportConfig(ablations=["pool"])) if r.name == "error_guided_no_pool")
     assert no_pool.callback_kwargs == {"use_pool": False}
     assert [r.name for r in _plan(ReportConfig(strategies=["mvtn", "random"], ablations=[]))] == ["random", "mvtn"]
-    kwargs = {
-        r.name: r.selector_kwargs for r in _plan(ReportConfig(selector_kwargs={"error_guided": {"mode": "soft"}}))
-    }
+    plan = _plan(ReportConfig(ablations=["k"], selector_kwargs={"error_guided": {"mode": "soft"}}))
+    kwargs = {r.name: r.selector_kwargs for r in plan}
     assert kwargs["error_guided_k60"] == {"mode": "soft", "k": 60} and kwargs["error_guided"] == {"mode": "soft"}
+    # Variants run in the registry's order, each under its own name.
+    plan = _plan(ReportConfig(strategies=["visible_nms", "paper", "random_area", "none"]))
+    assert [(r.name, r.strategy) for r in plan] == [
+        ("none", "none"),
+        ("random_area", "random_area"),
+        ("paper", "paper"),
+        ("visible_nms", "visible_nms"),
+    ]
 
 
 @pytest.mark.parametrize(
@@ -260,9 +312,8 @@ def test_config_rejects_wrong_types():
 
 def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatch):
     """Stubbed runs with distinct values per (run, seed, view set, metric): each cell must find its own."""
-    import statistics
-
     import lightning_vtr.experiments.report as report
+    from lightning_vtr.experiments.statistics import mean_estimate
 
     names = [
         "none",
@@ -271,6 +322,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         "viat",
         "mvtn",
         "error_guided",
+        "paper",
         "error_guided_k15",
         "error_guided_k60",
         "error_guided_k90",
@@ -293,15 +345,21 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed)
     )
     monkeypatch.setattr(report, "_single_view", lambda run, exp, source: payload(run.name, exp.seed))
-    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=[0, 2]))
+    config = ReportConfig(
+        default_experiment(out=str(tmp_path / "r")),
+        seeds=[0, 2],
+        strategies=[*STRATEGIES, "paper"],
+        ablations=ABLATIONS,
+    )
+    result = run_report(config)
 
     def cell(run: str, view_set: str, metric: str) -> str:
-        a, b = (100 * value(run, s, view_set, metric) for s in (0, 2))
-        return f"{statistics.fmean([a, b]):.2f} ± {statistics.stdev([a, b]):.2f}"
+        estimate = mean_estimate([100 * value(run, s, view_set, metric) for s in (0, 2)])
+        return f"{estimate.mean:.2f} ± {estimate.half_width:.2f}"
 
     both = [(v, m) for v in VIEW_SETS for m in ("iou@0.4", "fscore")]
     tables = _parse_tables(result["markdown"])
-    _, rows = tables["Table 1: robustness to view transformations (%, test set)"]
+    _, rows = tables["Table 1: robustness to view transformations (%, test set; mean ± 95 % CI over seeds (Student t))"]
     titles = {
         "None-VTR": "none",
         "Nature": "nature",
@@ -309,6 +367,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         "VIAT": "viat",
         "MVTN": "mvtn",
         "Ours": "error_guided",
+        "Ours (paper rule)": "paper",
     }
     assert list(rows) == list(titles)
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in titles.items()}
@@ -326,6 +385,10 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     _, rows = tables["Ablation: single-view input (%)"]
     single_runs = {"None-VTR (1 view)": "single_view_none", "Ours (1 view)": "single_view_error_guided"}
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in single_runs.items()}
+    # Per-seed differences are constant here (the seed term cancels): no spread, every seed agrees.
+    _, rows = tables["Paired difference to Random (mIoU points)"]
+    gap = (names.index("paper") - names.index("random")) * 7 / 2
+    assert rows["Ours (paper rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}], 2/2"] * 3
 
     with (tmp_path / "r" / "results.csv").open() as f:
         rows_csv = list(csv.DictReader(f))
@@ -343,3 +406,165 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
             if row["run"] == "single_view_none"
             else "error_guided"
         )
+
+
+def _stub_runs(monkeypatch, tmp_path, iou: dict[str, dict[int, float]], views=None, timing=None):
+    """Stub pretraining and fine-tuning: run ``r`` of seed ``s`` scores ``iou[r][s]`` on every view set (F-score
+    half of it); ``views[r][s]`` are written as its selection record, ``timing[r][s]`` as its measured stages."""
+    import lightning_vtr.experiments.report as report
+
+    def pretrain(config):
+        directory = tmp_path / "r" / f"seed_{config.seed}" / "pretrain"
+        directory.mkdir(parents=True, exist_ok=True)
+        seconds = (timing or {}).get("pretrain", {}).get(config.seed)
+        if seconds is not None:
+            (directory / "timing.json").write_text(json.dumps({"seconds": seconds}))
+        return directory / "pretrained.ckpt"
+
+    def run_strategy(name, config, pretrained, run_name, **kwargs):
+        run_dir = tmp_path / "r" / f"seed_{config.seed}" / run_name
+        if views and views.get(run_name, {}).get(config.seed) is not None:
+            (run_dir / "vtr_selection").mkdir(parents=True, exist_ok=True)
+            record = {"epoch": -1, "view_sets": views[run_name][config.seed]}
+            (run_dir / "vtr_selection" / "start.json").write_text(json.dumps(record))
+        value = iou[run_name][config.seed]
+        payload = {"results": {v: {"iou@0.4": value, "fscore": value / 2} for v in VIEW_SETS}, "train_seconds": 1.0}
+        if timing and run_name in timing:
+            payload["timing"] = timing[run_name][config.seed]
+            payload["train_seconds"] = timing[run_name][config.seed]["fit"]
+            payload["eval_seconds"] = timing[run_name][config.seed]["test"]
+        return payload
+
+    monkeypatch.setattr(experiment, "pretrain", pretrain)
+    monkeypatch.setattr(experiment, "run_strategy", run_strategy)
+    monkeypatch.setattr(report, "_single_view", lambda run, exp, source: None)
+
+
+def test_paired_differences_against_none_and_random_with_intervals_and_sign_agreement(tmp_path, monkeypatch):
+    from scipy import stats
+
+    seeds = [0, 1, 2]
+    none = {0: 0.40, 1: 0.50, 2: 0.45}
+    # Against none: +1, +2, +3 points for Random; +3, -1, +1 for Ours; exactly 0 for the paper rule.
+    iou = {
+        "none": none,
+        "random": {s: none[s] + d for s, d in zip(seeds, (0.01, 0.02, 0.03))},
+        "error_guided": {s: none[s] + d for s, d in zip(seeds, (0.03, -0.01, 0.01))},
+        "paper": dict(none),
+    }
+    _stub_runs(monkeypatch, tmp_path, iou)
+    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    tables = _parse_tables(result["markdown"])
+    t = stats.t.ppf(0.975, 2)
+
+    def expected(diffs: list[float]) -> str:
+        mean = sum(diffs) / 3
+        half = t * (sum((d - mean) ** 2 for d in diffs) / 2) ** 0.5 / 3**0.5
+        agree = sum(d * mean > 0 for d in diffs)
+        return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}], {agree}/3"
+
+    header, rows = tables["Paired difference to None-VTR (mIoU points)"]
+    assert header == ["Method", "Aligned", "Hemispherical", "Spherical"]
+    assert rows == {
+        "Random": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48], 3/3
+        "Ours": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97], 2/3
+        "Ours (paper rule)": ["+0.00 [+0.00, +0.00], 0/3"] * 3,
+    }
+    assert rows["Random"][0] == "+2.00 [-0.48, +4.48], 3/3"
+    _, rows = tables["Paired difference to Random (mIoU points)"]
+    assert rows == {
+        "None-VTR": [expected([-1, -2, -3])] * 3,
+        "Ours": [expected([2, -3, -2])] * 3,
+        "Ours (paper rule)": [expected([-1, -2, -3])] * 3,
+    }
+    estimate = result["differences"]["random"]["Ours"]["spherical"]
+    assert (estimate.n, estimate.agree) == (3, 2) and estimate.mean == pytest.approx(-0.01)
+    assert not estimate.excludes_zero
+
+    with (tmp_path / "r" / "differences.csv").open() as f:
+        rows_csv = list(csv.DictReader(f))
+    assert len(rows_csv) == 2 * 3 * 3 * 2  # baselines x other rows x view sets x metrics
+    row = next(
+        r
+        for r in rows_csv
+        if (r["baseline"], r["run"], r["view_set"], r["metric"]) == ("none", "random", "hemispherical", "iou@0.4")
+    )
+    assert float(row["mean"]) == pytest.approx(0.02) and float(row["ci_low"]) == pytest.approx(0.02 - t * 0.01 / 3**0.5)
+    assert (row["seeds"], row["agree"]) == ("3", "3")
+    fscore = next(r for r in rows_csv if (r["baseline"], r["run"], r["metric"]) == ("none", "random", "fscore"))
+    assert float(fscore["mean"]) == pytest.approx(0.01)
+
+
+def test_view_distribution_table_pools_every_seeds_generated_views(tmp_path, monkeypatch):
+    seeds = [0, 1]
+    iou = {name: {s: 0.5 for s in seeds} for name in MAIN_STRATEGIES}
+    # Seed 0: an antipodal pair at the equator plus a view at pitch 45 (spread (180 + 90 + 90) / 3 = 120);
+    # seed 1: three views below -60 on one meridian (spread (10 + 5 + 5) / 3).
+    views = {
+        "random": {0: [[[0, 0], [180, 0], [90, 45]]], 1: [[[0, -80], [0, -70], [0, -75]]]},
+        "paper": {0: [[[0, 0], [180, 0], [90, 45]]]},
+    }
+    _stub_runs(monkeypatch, tmp_path, iou, views=views)
+    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    header, rows = _parse_tables(result["markdown"])["Where the training views went"]
+    assert header == [
+        "Method",
+        "View sets",
+        "Pitch [-90, -60)",
+        "Pitch [-60, -30)",
+        "Pitch [-30, 0)",
+        "Pitch [0, 30)",
+        "Pitch [30, 60)",
+        "Pitch [60, 90]",
+        "Antipodal pairs",
+        "Mean spread (°)",
+    ]
+    # "none" and "error_guided" generated nothing: no row.
+    assert rows == {
+        "Random": ["2", "50.0", "0.0", "0.0", "33.3", "16.7", "0.0", "50.0", "63.3"],
+        "Ours (paper rule)": ["1", "0.0", "0.0", "0.0", "66.7", "33.3", "0.0", "100.0", "120.0"],
+    }
+    assert result["views"]["Random"]["triplet_spread"] == pytest.approx((120 + 20 / 3) / 2)
+    assert (tmp_path / "r" / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_time_split_sums_the_measured_stages(tmp_path, monkeypatch):
+    seeds = [0, 1]
+    iou = {name: {s: 0.5 for s in seeds} for name in ("none", "random")}
+
+    def stages(fit: float, augmentation: float, test: float) -> dict:
+        return {
+            "fit": fit,
+            "train_steps": fit - augmentation - 3.0,
+            "train_data": 1.0,
+            "validation": 1.5,
+            "augmentation": augmentation,
+            "fit_other": 0.5,
+            "test": test,
+            "test_steps": test - 2.0,
+            "test_data": 2.0,
+        }
+
+    timing = {
+        "pretrain": {s: stages(100.0, 0.0, 0.0) for s in seeds},
+        "none": {s: stages(40.0, 0.0, 10.0) for s in seeds},
+        "random": {s: stages(50.0 + s, 6.0, 12.0) for s in seeds},
+    }
+    _stub_runs(monkeypatch, tmp_path, iou, timing=timing)
+    result = run_report(
+        ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, strategies=["none", "random"])
+    )
+    split = result["time_split"]
+    assert split["pretraining"]["total"] == 200.0 and split["pretraining"]["train_steps"] == 2 * 97.0
+    assert split["fine_tuning"]["total"] == 2 * 40.0 + 50.0 + 51.0
+    assert split["fine_tuning"]["augmentation"] == 12.0 and split["fine_tuning"]["validation"] == 6.0
+    assert split["testing"] == {"total": 2 * 10.0 + 2 * 12.0, "test_steps": 2 * 8.0 + 2 * 10.0, "test_data": 8.0}
+    assert split["measured"] == 200.0 + 181.0 + 44.0
+    assert split["per_run"]["random"]["fine_tuning"] == 50.5 and split["per_run"]["random"]["augmentation"] == 6.0
+    assert json.loads((tmp_path / "r" / "timing.json").read_text())["split"] == split
+    _, rows = _parse_tables(result["markdown"])["Where the time goes"]
+    assert rows["Pretraining"] == ["200.0", f"{100 * 200 / 425:.1f}"]
+    assert rows["Fine-tuning"] == ["181.0", f"{100 * 181 / 425:.1f}"]
+    assert rows["&nbsp;&nbsp;selection + synthesis"] == ["12.0", f"{100 * 12 / 425:.1f}"]
+    assert rows["Testing"] == ["44.0", f"{100 * 44 / 425:.1f}"]
+    assert rows["random"] == ["50.5", "41.5", "1.0", "1.5", "6.0", "0.5", "12.0"]

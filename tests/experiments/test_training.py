@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import lightning as L
 import pytest
@@ -145,7 +146,7 @@ def test_make_strategy_builds_every_registered_selector():
         callback = experiment.make_strategy(name, config)
         assert isinstance(callback, ErrorGuidedViewAugmentation) and type(callback.selector) is cls, name
         assert (callback.fraction, callback.seed) == (0.2, 3)
-    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*, got 'ours'"):
+    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*'visible_nms_search', got 'ours'"):
         experiment.make_strategy("ours", config)
 
 
@@ -184,3 +185,112 @@ def test_config_reads_a_device_count_from_a_command_line():
 def test_cosine_fine_tuning_rejects_a_non_integer_epoch_count():
     with pytest.raises(TypeError, match="`epochs` must be an int, got float 2.5"):
         CosineFineTuning(2.5)
+
+
+def _callback_settings(callback) -> dict:
+    """What a strategy callback does, as comparable values."""
+    pool = callback.pool
+    return {
+        "selector": repr(callback.selector),
+        "fraction": callback.fraction,
+        "search_fraction": callback.search_fraction,
+        "generate_for": callback.generate_for,
+        "pool": None if pool is None else (pool.capacity, pool.prefer_others),
+        "pool_refresh": callback.pool_refresh,
+        "select_at_start": callback.select_at_start,
+    }
+
+
+def test_variants_registry_holds_the_table_1_strategies_and_the_named_variants():
+    assert list(experiment.VARIANTS)[:2] == ["none", "nature"]
+    assert set(experiment.STRATEGIES) <= set(experiment.VARIANTS)
+    assert {"random_area", "paper", "released", "visible", "visible_nms", "visible_tau", "visible_nms_search"} <= set(
+        experiment.VARIANTS
+    )
+    titles = [v.title for v in experiment.VARIANTS.values()]
+    assert all(titles) and len(set(titles)) == len(titles)
+    assert experiment.VARIANTS["none"].selector is None
+    # A registry entry cannot be changed through its kwargs.
+    with pytest.raises(TypeError):
+        experiment.VARIANTS["visible_nms"].selector_kwargs["min_separation"] = 0.0
+    with pytest.raises(ValueError, match="`selector` must be one of"):
+        experiment.StrategyVariant("ours")
+
+
+def test_variants_build_their_selector_and_callback_settings():
+    from lightning_vtr.callback import ErrorGuidedViewAugmentation
+    from lightning_vtr.selection import ErrorGuidedSelector, RandomSelector
+
+    config = ExperimentConfig(fraction=0.1, seed=4)
+
+    def build(name, **kwargs):
+        return experiment.make_strategy(name, config, **kwargs)
+
+    assert build("none") is None
+    assert isinstance(build("random").selector, RandomSelector) and build("random").selector.mode == "angle"
+    assert build("random_area").selector.mode == "area" and build("random_area").pool is None
+    # "error_guided" follows the package defaults, whatever they are.
+    default = ErrorGuidedViewAugmentation(ErrorGuidedSelector(), fraction=0.1, seed=4)
+    assert _callback_settings(build("error_guided")) == _callback_settings(default)
+    paper = build("paper")
+    assert (paper.selector.score, paper.selector.min_separation, paper.selector.temperature) == ("paper", None, None)
+    assert _callback_settings(paper) | {"selector": None} == {
+        "selector": None,
+        "fraction": 0.1,
+        "search_fraction": 0.1,
+        "generate_for": "random",
+        "pool": (None, True),
+        "pool_refresh": False,
+        "select_at_start": True,
+    }
+    released = build("released")
+    assert (released.selector.score, released.selector.mask, released.selector.reduction) == ("released", "gt", "mean")
+    assert (released.pool_refresh, released.pool.prefer_others, released.search_fraction) == (True, False, 0.35)
+    assert build("visible").selector.score == "visible" and build("visible").selector.min_separation is None
+    nms = build("visible_nms").selector
+    assert (nms.score, nms.min_separation, nms.temperature) == ("visible", 30.0, None)
+    tau = build("visible_tau").selector
+    assert (tau.score, tau.min_separation, tau.temperature) == ("visible", 30.0, 1.0)
+    search = build("visible_nms_search")
+    assert (search.selector.score, search.selector.min_separation) == ("visible", 30.0)
+    assert (search.search_fraction, search.pool_refresh, search.fraction) == (0.35, True, 0.1)
+    # The caller's kwargs go over the variant's.
+    merged = build("visible_nms_search", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
+    assert (merged.selector.k, merged.selector.score, merged.selector.min_separation) == (15, "visible", 30.0)
+    assert (merged.search_fraction, merged.pool_refresh) == (0.5, True)
+
+
+class _Sleepy(L.Callback):
+    """Stands in for an augmentation callback: 50 ms at the start of training and at every epoch end."""
+
+    def on_train_start(self, trainer, pl_module):
+        time.sleep(0.05)
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        time.sleep(0.05)
+
+
+def test_stage_timer_splits_a_fit_and_a_test(tmp_path):
+    timer = experiment.StageTimer()
+    assert timer.bracket(None) == []
+    callbacks = [timer, *timer.bracket(_Sleepy())]
+    trainer = L.Trainer(
+        max_epochs=2,
+        callbacks=callbacks,
+        default_root_dir=str(tmp_path),
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+    )
+    model = _LinearModel()
+    trainer.fit(model)
+    seconds = timer.seconds
+    assert set(seconds) == set(experiment.StageTimer.STAGES)
+    # One on_train_start and two epoch ends of 50 ms each, and nothing of them in the epochs' share.
+    assert 0.15 <= seconds["augmentation"] < 0.15 + 0.1
+    assert seconds["train_steps"] > 0 and seconds["train_data"] >= 0 and seconds["fit_other"] >= 0
+    parts = ("train_steps", "train_data", "validation", "augmentation", "fit_other")
+    assert math.fsum(seconds[k] for k in parts) == pytest.approx(seconds["fit"], rel=1e-6)
+    assert seconds["test"] == seconds["test_steps"] == seconds["test_data"] == 0.0
