@@ -74,12 +74,16 @@ def make_datamodule(root: Any, tmp_path: Path, **kw: Any) -> VTRDataModule:
 
 
 def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.Trainer:
-    """A quiet CPU Trainer of ``epochs`` short epochs (2 train batches) that reloads its loaders every epoch."""
+    """A quiet CPU Trainer of ``epochs`` short epochs (2 train batches) that reloads its loaders every epoch.
+
+    ``devices=2, strategy="ddp_spawn"`` gives the 2-process DDP runs of the equality tests.
+    """
     kw.setdefault("reload_dataloaders_every_n_epochs", 1)
+    kw.setdefault("devices", 1)
+    kw.setdefault("num_sanity_val_steps", 1)
     return L.Trainer(
         max_epochs=epochs,
         accelerator="cpu",
-        devices=1,
         callbacks=callbacks,
         default_root_dir=str(tmp_path),
         logger=False,
@@ -87,7 +91,6 @@ def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.T
         enable_model_summary=False,
         limit_train_batches=2,
         limit_val_batches=1,
-        num_sanity_val_steps=1,
         **kw,
     )
 

@@ -197,19 +197,8 @@ def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path)
 
     ddp = tmp_path / "ddp"
     probe = DatasetDigestProbe(str(tmp_path / "digests.jsonl"))
-    trainer = L.Trainer(
-        max_epochs=3,
-        accelerator="cpu",
-        devices=2,
-        strategy="ddp_spawn",
-        callbacks=[make_callback(fraction=0.2), probe],
-        default_root_dir=str(ddp),
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_train_batches=2,
-        limit_val_batches=1,
-        reload_dataloaders_every_n_epochs=1,
+    trainer = make_trainer(
+        ddp, 3, [make_callback(fraction=0.2), probe], devices=2, strategy="ddp_spawn", num_sanity_val_steps=2
     )
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 

@@ -209,19 +209,13 @@ def test_two_process_ddp_generates_and_learns_what_one_process_does(tiny_dataset
 
     ddp = tmp_path / "ddp"
     probe = SelectorStateProbe(str(tmp_path / "ddp_state.pt"))
-    trainer = L.Trainer(
-        max_epochs=3,
-        accelerator="cpu",
+    trainer = make_trainer(
+        ddp,
+        3,
+        [make_callback(selector=SELECTORS[name](), fraction=0.15), probe],
         devices=2,
         strategy="ddp_spawn",
-        callbacks=[make_callback(selector=SELECTORS[name](), fraction=0.15), probe],
-        default_root_dir=str(ddp),
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        limit_train_batches=2,
-        limit_val_batches=1,
-        reload_dataloaders_every_n_epochs=1,
+        num_sanity_val_steps=2,
     )
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 
