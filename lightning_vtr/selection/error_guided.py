@@ -74,7 +74,8 @@ class ErrorGuidedSelector(ViewSelector):
         mask: override of the score's mask: ``"gt"`` counts only errors inside ground-truth voxels,
             ``"none"`` every error.
         reduction: override of the score's per-view reduction, ``"sum"`` or ``"mean"`` over hit pixels.
-            ``None`` (the default) for ``mode``, ``mask`` and ``reduction`` takes the value of ``score``.
+            ``None`` (the default) for ``mode``, ``mask`` and ``reduction`` takes the value of ``score``;
+            ``score="visible"`` takes ``mode`` only.
         sigma: sampling standard deviation in degrees; ``None`` means ``K / 6``.
         fallback: uniform sampler for objects without error: ``"area"`` (uniform on the sphere) or
             ``"angle"`` (uniform yaw and pitch).
@@ -120,6 +121,11 @@ class ErrorGuidedSelector(ViewSelector):
             else check_float("min_separation", min_separation, minimum=0.0, maximum=180.0)
         )
         self.temperature = None if temperature is None else check_float("temperature", temperature, minimum=0.0)
+        if score == "visible" and (mask is not None or reduction is not None):
+            # the visible score values every visible voxel and sums: a mask or a mean would change what it means
+            raise ValueError(
+                f"`mask` and `reduction` do not apply to score='visible', got mask={mask!r}, reduction={reduction!r}"
+            )
         default_mode, default_mask, default_reduction = SCORES[score]
         self.mode = check_choice("mode", default_mode if mode is None else mode, ("binary", "soft"))
         mask = default_mask if mask is None else check_choice("mask", mask, ("gt", "none"))

@@ -126,5 +126,7 @@ def test_score_presets_and_overrides():
     assert (custom.mode, custom.mask, custom.reduction) == ("soft", None, "sum")
     with pytest.raises(ValueError, match="`score` must be one of 'paper', 'released', 'visible', got 'area'"):
         ErrorGuidedSelector(score="area")
+    with pytest.raises(ValueError, match="`mask` and `reduction` do not apply to score='visible'"):
+        ErrorGuidedSelector(score="visible", reduction="mean")
     with pytest.raises(ValueError, match="`min_separation` must be a number in"):
         ErrorGuidedSelector(min_separation=200.0)
