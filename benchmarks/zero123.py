@@ -52,7 +52,7 @@ def _time(synth: Zero123Synthesizer, n: int, steps: int, sync: bool) -> float:
 
 def full_size_components() -> dict:
     """A randomly initialised model with Zero-1-to-3's real architecture (~860M UNet, SD VAE, CLIP ViT-L/14)."""
-    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from diffusers import AutoencoderKL, UNet2DConditionModel
     from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
     unet = UNet2DConditionModel(
@@ -88,9 +88,8 @@ def full_size_components() -> dict:
             hidden_act="quick_gelu",
         )
     )
-    return dict(
-        unet=unet, vae=vae, image_encoder=image_encoder, projection=nn.Linear(772, 768), scheduler=DDIMScheduler()
-    )
+    # no scheduler: the synthesizer's default is the SD 1.x schedule Zero-1-to-3 was trained with
+    return dict(unet=unet, vae=vae, image_encoder=image_encoder, projection=nn.Linear(772, 768))
 
 
 def main() -> None:

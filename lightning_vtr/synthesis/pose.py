@@ -12,11 +12,11 @@ world (Blender's frame, the same as ours):
 
 For a source (input) view ``s`` and a target view ``t`` the conditioning vector ``T`` (radians) is
 
-* ``"zero123"`` (original Zero-1-to-3 / Zero123-XL, ``cc_projection/`` checkpoints):
+* ``"zero123"`` (original Zero-1-to-3 / Zero123-XL, in either checkpoint layout):
   ``T = [theta_t - theta_s, sin(psi_t - psi_s), cos(psi_t - psi_s), r_t - r_s]``.
   A positive first entry moves the camera *down* (toward the equator and below), a positive
   azimuth difference turns the camera counter-clockwise seen from +Z.
-* ``"stable"`` (Stable Zero123, ``clip_camera_projection/`` checkpoints): the same first three entries;
+* ``"stable"`` (Stable Zero123; the checkpoint layout does not tell it apart): the same first three entries;
   the fourth is the *source* view's polar angle ``theta_s`` in radians instead of a radius difference.
   Ports that assume the input photo is taken at the horizon write the constant ``deg2rad(90)``, which
   is what this gives for a source pitch of 0; we know the source pitch, so we use it.

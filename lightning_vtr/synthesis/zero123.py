@@ -1,4 +1,4 @@
-"""Zero-1-to-3 novel-view synthesis assembled from ``diffusers`` / ``transformers`` components and local weights.
+"""Zero-1-to-3 novel-view synthesis assembled from ``diffusers`` / ``transformers`` components.
 
 diffusers ships no Zero-1-to-3 pipeline, and its community file cannot load the checkpoints found in the wild
 as a whole, so :class:`Zero123Synthesizer` holds the five components explicitly (a UNet with 8 input
@@ -6,6 +6,8 @@ channels, a VAE, a CLIP vision encoder, a DDIM scheduler and the linear "camera 
 sampling loop itself. ``diffusers`` and ``transformers`` are imported only when weights are loaded, so the
 rest of the package works without them (``pip install lightning-vtr[zero123]``).
 
+Checkpoint files (variants, shards, the noise schedule, the pose convention) are read by
+:mod:`~lightning_vtr.synthesis.zero123_checkpoint`; Hub ids are resolved by :mod:`~lightning_vtr.synthesis.zero123_hub`.
 Only tiny randomly initialised models are exercised by the tests; real checkpoints were not available here.
 """
 
@@ -16,128 +18,41 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch import Tensor, nn
 
 from lightning_vtr.geometry import check_viewpoints
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.synthesis.cache import viewpoint_key
 from lightning_vtr.synthesis.pose import POSE_EMBEDDINGS, nearest_source_view, relative_pose
-from lightning_vtr.utils.validation import check_choice, check_float, check_int
+from lightning_vtr.synthesis.zero123_checkpoint import (
+    CLIP_MEAN,
+    CLIP_STD,
+    COMPONENT_KINDS,
+    OPTIONAL_FOLDERS,
+    PROJECTION_LAYOUTS,
+    REFERENCE_DDIM,
+    Zero123CheckpointError,
+    find_local_weights,
+    fingerprint_files,
+    load_projection,
+    noise_schedule_mismatches,
+    pose_embedding_for,
+    read_feature_extractor,
+)
+from lightning_vtr.synthesis.zero123_hub import resolve_checkpoint
+from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPVisionModelWithProjection
 
 __all__ = ["CLIP_MEAN", "CLIP_STD", "Zero123CheckpointError", "Zero123Synthesizer"]
-
-#: OpenAI CLIP's normalisation, used when a checkpoint has no ``feature_extractor/``.
-CLIP_MEAN: tuple[float, float, float] = (0.48145466, 0.4578275, 0.40821073)
-CLIP_STD: tuple[float, float, float] = (0.26862954, 0.26130258, 0.27577711)
-
-#: Camera-projection subfolder -> (name of its linear layer in the weights, pose embedding it implies).
-_PROJECTION_LAYOUTS: dict[str, tuple[str, str]] = {
-    "cc_projection": ("projection", "zero123"),
-    "clip_camera_projection": ("proj", "stable"),
-}
-_DIFFUSERS_WEIGHTS = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin")
-_TRANSFORMERS_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
-
-#: The DDIM schedule Zero-1-to-3 was trained and sampled with (the latent-diffusion SD 1.x schedule),
-#: used when a checkpoint has no ``scheduler/`` folder.
-_DEFAULT_DDIM = dict(
-    num_train_timesteps=1000,
-    beta_start=0.00085,
-    beta_end=0.012,
-    beta_schedule="scaled_linear",
-    clip_sample=False,
-    set_alpha_to_one=False,
-    steps_offset=1,
-    prediction_type="epsilon",
-)
-
-
-class Zero123CheckpointError(ValueError):
-    """A Zero-1-to-3 checkpoint directory (or a set of components) is missing parts or they do not fit."""
-
-
-def _describe_folder(folder: Path) -> str:
-    if not folder.is_dir():
-        return "folder missing"
-    names = sorted(p.name for p in folder.iterdir())
-    return f"found {names}" if names else "folder empty"
-
-
-def _load_state_dict(file: Path) -> dict[str, Tensor]:
-    if file.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(file))
-    return torch.load(file, map_location="cpu", weights_only=True)
-
-
-def _load_projection(folder: Path, layer: str) -> nn.Linear:
-    """Build the camera projection from its weights, inferring ``in``/``out`` sizes; raises with what was found."""
-    files = [folder / name for name in _DIFFUSERS_WEIGHTS if (folder / name).is_file()]
-    if not files:
-        raise Zero123CheckpointError(
-            f"{folder.name}/: expected one of {list(_DIFFUSERS_WEIGHTS)}; {_describe_folder(folder)}"
-        )
-    state = _load_state_dict(files[0])
-    weight, bias = state.get(f"{layer}.weight"), state.get(f"{layer}.bias")
-    if weight is None or weight.ndim != 2:
-        raise Zero123CheckpointError(
-            f"{folder.name}/{files[0].name}: expected a 2-D tensor '{layer}.weight' (and '{layer}.bias'), "
-            f"found keys {sorted(state)}"
-        )
-    out_features, in_features = weight.shape
-    config_file = folder / "config.json"
-    if config_file.is_file():
-        config = json.loads(config_file.read_text())
-        # layout (b) states its sizes; layout (a)'s config has none to check
-        if "embedding_dim" in config:
-            expected = (config["embedding_dim"], config["embedding_dim"] + config.get("additional_embeddings", 4))
-            if (out_features, in_features) != expected:
-                raise Zero123CheckpointError(
-                    f"{folder.name}/: config.json says (out, in) = {expected} (embedding_dim, "
-                    f"embedding_dim + additional_embeddings), but '{layer}.weight' has shape {tuple(weight.shape)}"
-                )
-    linear = nn.Linear(in_features, out_features, bias=bias is not None)
-    with torch.no_grad():
-        linear.weight.copy_(weight.float())
-        if bias is not None:
-            linear.bias.copy_(bias.float())
-    return linear
-
-
-def _read_feature_extractor(folder: Path) -> dict[str, Any]:
-    """Normalisation and crop size from a ``CLIPImageProcessor`` config (read as JSON: we preprocess in torch)."""
-    config = json.loads((folder / "preprocessor_config.json").read_text())
-    crop = config.get("crop_size", config.get("size", 224))
-    if isinstance(crop, dict):
-        crop = crop.get("height", crop.get("shortest_edge", 224))
-    return {
-        "image_mean": tuple(config.get("image_mean", CLIP_MEAN)),
-        "image_std": tuple(config.get("image_std", CLIP_STD)),
-        "clip_size": int(crop),
-    }
-
-
-def _fingerprint_files(path: Path) -> str:
-    """Hash of every config in a checkpoint plus its weight files' names and sizes (cheap, copy-stable)."""
-    h = hashlib.sha256()
-    for file in sorted(p for p in path.rglob("*") if p.is_file()):
-        rel = file.relative_to(path).as_posix()
-        if file.suffix == ".json":
-            h.update(rel.encode() + file.read_bytes())
-        elif file.suffix in (".safetensors", ".bin"):
-            h.update(f"{rel}:{file.stat().st_size}".encode())
-    return h.hexdigest()[:16]
 
 
 def _fingerprint_modules(modules: Sequence[nn.Module]) -> str:
@@ -176,11 +91,13 @@ class Zero123Synthesizer(Synthesizer):
     For each target viewpoint the nearest source view (great-circle angle) is the input image. The input is
     centred on its alpha bounding box, composited on white and resized to the model resolution
     (``unet.config.sample_size * 2 ** (len(vae.config.block_out_channels) - 1)``, 256 for real checkpoints).
-    Its CLIP image embedding (``clip_size`` square, CLIP mean/std) concatenated with the relative pose ``T``
+    Its CLIP image embedding (bicubic resize to ``clip_size`` with ``align_corners=True`` and no antialiasing,
+    as the reference; CLIP mean/std) concatenated with the relative pose ``T``
     (:func:`~lightning_vtr.synthesis.pose.relative_pose`) goes through the camera projection to one
     cross-attention token; its VAE latent (posterior mode, *not* multiplied by the VAE scaling factor) is
     concatenated to the noisy latent (4 + 4 channels). The unconditional branch of classifier-free guidance
-    uses zeros for both; it is skipped when ``guidance_scale <= 1``.
+    uses zeros for both; it is skipped only when ``guidance_scale == 1`` (as in the reference: a scale in
+    ``[0, 1)`` mixes toward the unconditional prediction, ``0`` is unconditional).
 
     Outputs are decoded (``latents / scaling_factor``), clipped to ``[0, 1]``, mapped back to the input's
     framing (when ``restore_scale``: scaled by the inverse of the input crop's scale and centred, so objects
@@ -196,11 +113,12 @@ class Zero123Synthesizer(Synthesizer):
         vae: ``AutoencoderKL``.
         image_encoder: ``CLIPVisionModelWithProjection``.
         projection: ``nn.Linear(projection_dim + 4, cross_attention_dim)``, the camera projection.
-        scheduler: ``DDIMScheduler``; default: the SD 1.x schedule Zero-1-to-3 was trained with.
-        pose_embedding: ``"zero123"`` (4th pose entry: radius difference) or ``"stable"`` (Stable Zero123:
-            the source polar angle), see :mod:`lightning_vtr.synthesis.pose`.
+        scheduler: ``DDIMScheduler``; default: the SD 1.x schedule Zero-1-to-3 was trained with, sampled as the
+            reference does (:data:`~lightning_vtr.synthesis.zero123_checkpoint.REFERENCE_DDIM`).
+        pose_embedding: ``"zero123"`` (original Zero-1-to-3 and Zero123-XL; 4th pose entry: radius difference)
+            or ``"stable"`` (Stable Zero123: the source polar angle), see :mod:`lightning_vtr.synthesis.pose`.
         num_inference_steps: DDIM steps (50 in the reference).
-        guidance_scale: classifier-free guidance weight (3.0 in the reference).
+        guidance_scale: classifier-free guidance weight (3.0 in the reference; 1 skips the unconditional branch).
         eta: DDIM ``eta`` (1.0 in the reference: stochastic).
         seed: base seed of the per-view noise.
         image_size: side of the returned images (the dataset's image size).
@@ -222,7 +140,7 @@ class Zero123Synthesizer(Synthesizer):
         ValueError: for an out-of-range argument.
 
     Example:
-        >>> synth = Zero123Synthesizer.from_pretrained("/weights/zero123-xl-diffusers", image_size=128)  # doctest: +SKIP
+        >>> synth = Zero123Synthesizer.from_pretrained("bennyguo/zero123-xl-diffusers", image_size=128)  # doctest: +SKIP
         >>> images = synth.synthesize(requests)  # one (T, 128, 128, 4) uint8 array per request  # doctest: +SKIP
     """
 
@@ -254,7 +172,7 @@ class Zero123Synthesizer(Synthesizer):
         from diffusers import DDIMScheduler
 
         if scheduler is None:
-            scheduler = DDIMScheduler(**_DEFAULT_DDIM)
+            scheduler = DDIMScheduler(**REFERENCE_DDIM)
         problems = self._check_components(unet, vae, image_encoder, projection, scheduler)
         if problems:
             raise Zero123CheckpointError("Zero-1-to-3 components do not fit together:\n  - " + "\n  - ".join(problems))
@@ -310,91 +228,161 @@ class Zero123Synthesizer(Synthesizer):
         device: str | torch.device | None = None,
         dtype: torch.dtype | None = None,
         pose_embedding: Literal["auto", "zero123", "stable"] = "auto",
+        variant: str | None = None,
+        revision: str | None = None,
+        cache_dir: str | os.PathLike | None = None,
+        token: str | bool | None = None,
+        local_files_only: bool = False,
         **kwargs: Any,
     ) -> Zero123Synthesizer:
-        """Load a diffusers-format Zero-1-to-3 checkpoint from a local directory, component by component.
+        """Load a diffusers-format Zero-1-to-3 checkpoint, component by component, from a folder or the Hub.
 
-        Expected subfolders: ``unet/``, ``vae/``, ``image_encoder/`` and either ``cc_projection/`` (layout (a):
-        Zero-1-to-3 / Zero123-XL conversions, linear ``projection``) or ``clip_camera_projection/`` (layout (b):
-        Stable Zero123 conversions, linear ``proj``). Optional: ``scheduler/`` (loaded as DDIM) and
-        ``feature_extractor/`` (its mean, std and crop size are used). Nothing is downloaded.
+        Expected subfolders: ``unet/``, ``vae/``, ``image_encoder/`` and either ``cc_projection/`` (linear
+        ``projection``: the community pipeline's layout, kxic's conversions) or ``clip_camera_projection/``
+        (linear ``proj``: threestudio's converter, used for Zero-1-to-3, Zero123-XL and Stable Zero123 alike).
+        Optional: ``scheduler/`` (checked against the SD 1.x schedule, see below) and ``feature_extractor/``
+        (its mean, std and crop size are used). Weights may be plain, a single ``*.{variant}.*`` set (detected:
+        folders holding only ``diffusion_pytorch_model.fp16.safetensors`` load as they are) or sharded with an
+        ``*.index.json``.
+
+        The pose embedding (:func:`~lightning_vtr.synthesis.pose.relative_pose`) is ``"zero123"`` for either
+        layout unless asked otherwise or the checkpoint's name (the repository name of a Hub id, else the
+        folder's name) says "stable"; the choice and its reason are logged. Every Zero-1-to-3 variant was
+        trained with the SD 1.x noise schedule (scaled_linear 0.00085 -> 0.012, 1000 steps, epsilon): a
+        ``scheduler/`` that departs from it (the diffusers conversion script writes beta 0.02 -> 0.085) draws a
+        warning and is replaced by it. Pass ``scheduler=`` to use your own, unchecked.
 
         Args:
-            path: the checkpoint directory.
+            path: a checkpoint directory, or a Hub id ``"owner/name"`` (e.g. ``"bennyguo/zero123-xl-diffusers"``)
+                that is not a local path. Only the files read are downloaded (configs plus one weight set per
+                component); ``HF_HUB_OFFLINE=1`` restricts a Hub id to the Hub cache.
             device: see the class.
             dtype: see the class.
-            pose_embedding: ``"auto"`` picks ``"zero123"`` for layout (a) and ``"stable"`` for layout (b).
-            **kwargs: any other constructor argument (``num_inference_steps``, ``image_size``, ...).
+            pose_embedding: ``"auto"`` (see above), ``"zero123"`` or ``"stable"``.
+            variant: weight variant to prefer (``"fp16"``); default: plain weights, or the only variant present.
+            revision: Hub branch, tag or commit of a Hub id (default ``"main"``).
+            cache_dir: Hub cache directory (default ``HF_HUB_CACHE``).
+            token: Hub token for private or gated repositories.
+            local_files_only: never reach the network for a Hub id.
+            **kwargs: any other constructor argument (``num_inference_steps``, ``image_size``, ``scheduler``, ...).
 
         Raises:
-            FileNotFoundError: if ``path`` is not a directory.
+            FileNotFoundError: ``path`` is neither a directory nor a Hub id that is cached or downloadable; the
+                message names the id and the command that fetches it.
             ValueError: for an unknown ``pose_embedding`` (or a bad constructor argument in ``kwargs``).
-            Zero123CheckpointError: listing every missing or mismatched component with what was expected in which
-                subfolder and what was found.
+            Zero123CheckpointError: for an original latent-diffusion ``.ckpt`` (the message says how to convert
+                it), or listing every missing or mismatched component with what was expected in which subfolder
+                and what was found.
+
+        Warns:
+            UserWarning: ``scheduler/`` departs from the SD 1.x schedule (each difference listed).
         """
         from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
         from transformers import CLIPVisionModelWithProjection
 
-        path = Path(path)
-        if not path.is_dir():
-            raise FileNotFoundError(f"`path` must be a Zero-1-to-3 checkpoint directory, got {str(path)!r}")
+        # 1. check arguments, then find the files (a local folder, the Hub cache or a download)
         check_choice("pose_embedding", pose_embedding, ("auto", *POSE_EMBEDDINGS))
+        if variant is not None:
+            check_type("variant", variant, str)
+        source = resolve_checkpoint(
+            path,
+            revision=revision,
+            cache_dir=cache_dir,
+            token=token,
+            local_files_only=local_files_only,
+            variant=variant,
+        )
+        folder = source.folder
 
+        # 2. the model components; every problem is collected so one error lists them all
         problems: list[str] = []
         loaded: dict[str, Any] = {}
+        used: list[str] = []  # files whose identity goes into the cache key
+        variants: dict[str, str] = {}
         specs = [
-            ("unet", UNet2DConditionModel, _DIFFUSERS_WEIGHTS),
-            ("vae", AutoencoderKL, _DIFFUSERS_WEIGHTS),
-            ("image_encoder", CLIPVisionModelWithProjection, _TRANSFORMERS_WEIGHTS),
+            ("unet", UNet2DConditionModel),
+            ("vae", AutoencoderKL),
+            ("image_encoder", CLIPVisionModelWithProjection),
         ]
-        for sub, model_cls, weights in specs:
-            folder = path / sub
-            expected = f"{sub}/: expected a {model_cls.__name__} (config.json + one of {list(weights)})"
-            if not (folder / "config.json").is_file() or not any((folder / w).is_file() for w in weights):
-                problems.append(f"{expected}; {_describe_folder(folder)}")
+        for sub, model_cls in specs:
+            try:
+                weights = find_local_weights(folder / sub, COMPONENT_KINDS[sub], variant)
+            except Zero123CheckpointError as err:
+                problems.append(f"{err} [{model_cls.__name__}]")
                 continue
             try:
-                loaded[sub] = model_cls.from_pretrained(path, subfolder=sub, local_files_only=True)
+                loaded[sub] = model_cls.from_pretrained(
+                    folder, subfolder=sub, variant=weights.variant, local_files_only=True
+                )
             except Exception as err:  # noqa: BLE001 - reported with the folder it came from
-                problems.append(f"{expected}; loading failed: {type(err).__name__}: {err}")
+                problems.append(f"{sub}/: expected a {model_cls.__name__}; loading failed: {type(err).__name__}: {err}")
+                continue
+            used += [f"{sub}/config.json", *(f"{sub}/{name}" for name in weights.files)]
+            if weights.variant is not None:
+                variants[sub] = weights.variant
 
-        layouts = [sub for sub in _PROJECTION_LAYOUTS if (path / sub).is_dir()]
-        layout = layouts[0] if layouts else None
-        if layout is None:
+        # 3. the camera projection, sized from its weights
+        layouts = [sub for sub in PROJECTION_LAYOUTS if (folder / sub).is_dir()]
+        if not layouts:
             problems.append(
-                "cc_projection/ or clip_camera_projection/: expected the camera projection "
-                f"(config.json + one of {list(_DIFFUSERS_WEIGHTS)}); neither folder exists "
-                f"(top level has {sorted(p.name for p in path.iterdir())})"
+                "cc_projection/ or clip_camera_projection/: expected the camera projection (config.json + "
+                f"diffusion_pytorch_model[.<variant>].safetensors or .bin); neither folder exists "
+                f"(top level has {sorted(p.name for p in folder.iterdir())})"
             )
         else:
+            layout = layouts[0]
             try:
-                loaded["projection"] = _load_projection(path / layout, _PROJECTION_LAYOUTS[layout][0])
+                weights = find_local_weights(folder / layout, "diffusers", variant)
+                loaded["projection"] = load_projection(folder / layout, PROJECTION_LAYOUTS[layout], weights)
+                used += [f"{layout}/{name}" for name in ("config.json", *weights.files)]
+                if weights.variant is not None:
+                    variants[layout] = weights.variant
             except Zero123CheckpointError as err:
                 problems.append(str(err))
 
-        if (path / "scheduler").is_dir():
+        # 4. the noise schedule: the SD 1.x one unless the caller brings a scheduler
+        if "scheduler" not in kwargs and (folder / "scheduler").is_dir():
+            config_file = folder / "scheduler" / OPTIONAL_FOLDERS["scheduler"]
             try:
-                loaded["scheduler"] = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
+                mismatches = noise_schedule_mismatches(json.loads(config_file.read_text()))
+                if not mismatches:
+                    kwargs["scheduler"] = DDIMScheduler.from_pretrained(folder, subfolder="scheduler")
+                    used.append(f"scheduler/{config_file.name}")
             except Exception as err:  # noqa: BLE001
-                problems.append(f"scheduler/: expected a scheduler_config.json; loading failed: {err}")
-        if (path / "feature_extractor" / "preprocessor_config.json").is_file():
-            for key, value in _read_feature_extractor(path / "feature_extractor").items():
+                problems.append(f"scheduler/: expected a readable {config_file.name}; loading failed: {err}")
+            else:
+                if mismatches:
+                    rank_zero_warn(
+                        f"Zero123Synthesizer: {source.name} scheduler/{config_file.name} departs from the SD 1.x "
+                        "noise schedule every Zero-1-to-3 variant was trained with (" + "; ".join(mismatches) + "); "
+                        "using the SD 1.x schedule instead (scaled_linear 0.00085 -> 0.012, 1000 steps, epsilon)"
+                    )
+        if (folder / "feature_extractor" / OPTIONAL_FOLDERS["feature_extractor"]).is_file():
+            for key, value in read_feature_extractor(folder / "feature_extractor").items():
                 kwargs.setdefault(key, value)
+            used.append(f"feature_extractor/{OPTIONAL_FOLDERS['feature_extractor']}")
 
         if problems:
             raise Zero123CheckpointError(
-                f"Cannot load a Zero-1-to-3 checkpoint from {str(path)!r}:\n  - " + "\n  - ".join(problems)
+                f"Cannot load a Zero-1-to-3 checkpoint from {str(folder)!r}:\n  - "
+                + "\n  - ".join(problems)
+                + (f"\n{source.hint}" if source.hint else "")
             )
-        if pose_embedding == "auto":
-            pose_embedding = _PROJECTION_LAYOUTS[layout][1]  # type: ignore[index]
-        kwargs.setdefault("weights_id", f"{path.resolve()}#{_fingerprint_files(path)}")
+
+        # 5. the pose convention: the folder layout cannot tell it, so "zero123" unless told otherwise
+        pose, reason = pose_embedding_for(pose_embedding, source.name)
+        meaning = "4th entry: source polar angle" if pose == "stable" else "4th entry: radius difference"
+        weight_note = f", weight variants {variants}" if variants else ""
+        rank_zero_info(
+            f"Zero123Synthesizer: {source.name}: pose embedding {pose!r} ({meaning}) - {reason}{weight_note}"
+        )
+        kwargs.setdefault("weights_id", f"{source.ident}#{fingerprint_files(folder, used)}")
         return cls(
             loaded["unet"],
             loaded["vae"],
             loaded["image_encoder"],
             loaded["projection"],
-            loaded.get("scheduler"),
-            pose_embedding=pose_embedding,
+            pose_embedding=pose,
             device=device,
             dtype=dtype,
             **kwargs,
@@ -586,7 +574,7 @@ class Zero123Synthesizer(Synthesizer):
             target_viewpoints: ``(N, 2)`` (yaw, pitch) in degrees to synthesize.
             seeds: one noise seed per pair; default ``seed + i``.
             num_inference_steps: override the instance's DDIM steps.
-            guidance_scale: override the instance's guidance (``<= 1`` skips the unconditional branch).
+            guidance_scale: override the instance's guidance (``1`` skips the unconditional branch).
             eta: override the instance's DDIM ``eta``.
             output_size: side of the returned RGBA images; default ``image_size``.
             output_type: ``"np"``: ``(N, S, S, 4)`` uint8 RGBA after postprocessing; ``"pt"``: the decoded
@@ -679,9 +667,8 @@ class Zero123Synthesizer(Synthesizer):
             pose: ``(n, 4)`` relative poses (radians), see :func:`~lightning_vtr.synthesis.pose.relative_pose`.
         """
         device, dtype = self._place()
-        x = F.interpolate(
-            pixels.float(), size=(self.clip_size, self.clip_size), mode="bicubic", align_corners=False, antialias=True
-        )
+        # the reference resizes with kornia: bicubic, align_corners=True, no antialiasing (values may overshoot)
+        x = F.interpolate(pixels.float(), size=(self.clip_size, self.clip_size), mode="bicubic", align_corners=True)
         mean = torch.tensor(self.image_mean).view(1, 3, 1, 1)
         std = torch.tensor(self.image_std).view(1, 3, 1, 1)
         x = ((x - mean) / std).to(device=device, dtype=dtype)
@@ -702,7 +689,8 @@ class Zero123Synthesizer(Synthesizer):
     ) -> Tensor:
         """Sample one batch; returns decoded ``(n, 3, R, R)`` float32 RGB in [0, 1] on the CPU."""
         device, dtype = self._place()
-        do_guidance = guidance > 1.0
+        # the reference skips the unconditional branch only at exactly 1; below 1 guidance extrapolates away
+        do_guidance = guidance != 1.0
 
         # a. conditioning: one cross-attention token and the image latent; zeros for the unconditional branch
         token = self.encode_image(pixels, pose)

@@ -61,12 +61,18 @@ def synth_b(tiny_zero123) -> Zero123Synthesizer:
     return Zero123Synthesizer.from_pretrained(tiny_zero123.layout_b, **FAST)
 
 
+@pytest.fixture(scope="module")
+def synth_stable(tiny_zero123) -> Zero123Synthesizer:
+    return Zero123Synthesizer.from_pretrained(tiny_zero123.stable, **FAST)
+
+
 # ---------------------------------------------------------------- loading
 
 
-@pytest.mark.parametrize("layout, pose", [("layout_a", "zero123"), ("layout_b", "stable")])
-def test_loads_both_layouts_with_inferred_projection(tiny_zero123, layout, pose, request):
-    synth = request.getfixturevalue("synth_a" if layout == "layout_a" else "synth_b")
+@pytest.mark.parametrize("fixture, pose", [("synth_a", "zero123"), ("synth_b", "zero123"), ("synth_stable", "stable")])
+def test_loads_both_layouts_with_inferred_projection(tiny_zero123, fixture, pose, request):
+    # the layout does not tell the pose: only a name saying "stable" gives Stable Zero123's
+    synth = request.getfixturevalue(fixture)
     ref = tiny_zero123.components["projection"]
     assert (synth.projection.in_features, synth.projection.out_features) == (36, 32)
     torch.testing.assert_close(synth.projection.weight, ref.weight, rtol=0, atol=0)
@@ -108,7 +114,8 @@ def test_missing_components_listed_in_one_error(tiny_zero123, tmp_path):
     with pytest.raises(Zero123CheckpointError) as err:
         Zero123Synthesizer.from_pretrained(path)
     msg = str(err.value)
-    assert "vae/: expected a AutoencoderKL" in msg and "folder missing" in msg
+    assert "vae/: expected config.json + weights named diffusion_pytorch_model" in msg
+    assert "folder missing [AutoencoderKL]" in msg
     assert "cc_projection/ or clip_camera_projection/" in msg and "neither folder exists" in msg
     assert "unet/" not in msg  # only what is wrong is listed
 
@@ -236,8 +243,9 @@ def test_batching_does_not_change_outputs(synth_a):
         assert np.abs(x.astype(int) - y.astype(int)).max() <= 2
 
 
-def test_pose_reaches_the_projection(synth_a, synth_b):
-    for synth in (synth_a, synth_b):
+def test_pose_reaches_the_projection(synth_a, synth_b, synth_stable):
+    assert [s.pose_embedding for s in (synth_a, synth_b, synth_stable)] == ["zero123", "zero123", "stable"]
+    for synth in (synth_a, synth_b, synth_stable):
         seen = []
         handle = synth.projection.register_forward_hook(lambda m, inp, out: seen.append(inp[0].detach().clone()))
         try:
@@ -297,6 +305,48 @@ def _count_unet_calls(synth, guidance):
 def test_guidance_branches(synth_a):
     assert _count_unet_calls(synth_a, 1.0) == [3, 3, 3]  # no unconditional branch
     assert _count_unet_calls(synth_a, 3.0) == [6, 6, 6]  # unconditional + conditional in one call
+    # as in the reference, only exactly 1 skips the unconditional branch
+    assert _count_unet_calls(synth_a, 0.5) == [6, 6, 6]
+    assert _count_unet_calls(synth_a, 0.0) == [6, 6, 6]
+
+
+def test_guidance_below_one_mixes_toward_unconditional(synth_a):
+    red, green = _object_image(), _object_image(colour=(30, 160, 60))
+    source, target = torch.zeros(1, 2), torch.tensor([[30.0, 0.0]])
+
+    def run(image, guidance, target=target):
+        return synth_a(
+            [image], source, target, seeds=[3], guidance_scale=guidance, num_inference_steps=2, output_type="pt"
+        )
+
+    # scale 0 is the unconditional prediction alone: zeros for the token and the image latent, so neither the
+    # input image nor the pose can change the output
+    torch.testing.assert_close(run(red, 0.0), run(green, 0.0), rtol=0, atol=0)
+    torch.testing.assert_close(run(red, 0.0), run(red, 0.0, torch.tensor([[-90.0, 40.0]])), rtol=0, atol=0)
+    # a scale in (0, 1) still sees the condition (it used to be dropped, giving the scale-1 image)
+    assert (run(red, 0.5) - run(green, 0.5)).abs().max() > 1e-4
+    assert (run(red, 0.5) - run(red, 1.0)).abs().max() > 1e-4
+
+
+def test_clip_input_is_resized_as_the_reference(synth_a):
+    # the reference (kornia): bicubic, align_corners=True, no antialiasing, then CLIP's mean/std
+    seen = []
+    handle = synth_a.image_encoder.register_forward_hook(
+        lambda m, args, kwargs, out: seen.append(kwargs["pixel_values"].detach().clone()), with_kwargs=True
+    )
+    pixels, _ = synth_a.preprocess(_object_image())
+    try:
+        synth_a.encode_image(pixels[None], torch.zeros(1, 4))
+    finally:
+        handle.remove()
+    ref = torch.nn.functional.interpolate(pixels[None], size=(224, 224), mode="bicubic", align_corners=True)
+    ref = (ref - torch.tensor(CLIP_MEAN).view(1, 3, 1, 1)) / torch.tensor(CLIP_STD).view(1, 3, 1, 1)
+    assert seen[0].shape == (1, 3, 224, 224)
+    torch.testing.assert_close(seen[0], ref, rtol=0, atol=1e-6)
+    # the previous resize (antialiased, align_corners=False) differs from it by far more than rounding
+    old = torch.nn.functional.interpolate(pixels[None], size=(224, 224), mode="bicubic", antialias=True)
+    old = (old - torch.tensor(CLIP_MEAN).view(1, 3, 1, 1)) / torch.tensor(CLIP_STD).view(1, 3, 1, 1)
+    assert (seen[0] - old).abs().max() > 1e-2
 
 
 def test_unconditional_branch_is_zeros(synth_a):
