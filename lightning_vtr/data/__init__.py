@@ -1,4 +1,4 @@
-"""Data: the ShapeNet-VTR format and builder, the procedural dataset, readers, and the mutable DataModule.
+"""Data: the ShapeNet-VTR format and builder, the procedural dataset, readers, image recipes, and the mutable DataModule.
 
 Names are imported lazily so dataset build workers do not import Lightning.
 """
@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # what IDEs and type checkers see; at runtime __getattr__ imports on first use
     from lightning_vtr.data.builder import BuildReport, build_dataset, ensure_embedded_dataset
     from lightning_vtr.data.datamodule import VTRDataModule
-    from lightning_vtr.data.dataset import GeneratedSample, ImageTransform
+    from lightning_vtr.data.dataset import GeneratedSample
     from lightning_vtr.data.format import DatasetFormatError, ObjectRecord, scan_dataset
     from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
+    from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe, ImageTransform
     from lightning_vtr.protocol import VIEW_SETS
 
 _EXPORTS = {
@@ -23,17 +24,21 @@ _EXPORTS = {
     "VIEW_SETS": "lightning_vtr.protocol",
     "VTRDataModule": "lightning_vtr.data.datamodule",
     "GeneratedSample": "lightning_vtr.data.dataset",
-    "ImageTransform": "lightning_vtr.data.dataset",
     "DatasetFormatError": "lightning_vtr.data.format",
     "ObjectRecord": "lightning_vtr.data.format",
     "scan_dataset": "lightning_vtr.data.format",
     "ShapeNetRenderingSource": "lightning_vtr.data.shapenet_rendering",
+    "IMAGE_RECIPES": "lightning_vtr.data.transforms",
+    "ImageRecipe": "lightning_vtr.data.transforms",
+    "ImageTransform": "lightning_vtr.data.transforms",
 }
 __all__ = [
+    "IMAGE_RECIPES",
     "VIEW_SETS",
     "BuildReport",
     "DatasetFormatError",
     "GeneratedSample",
+    "ImageRecipe",
     "ImageTransform",
     "ObjectRecord",
     "ShapeNetRenderingSource",

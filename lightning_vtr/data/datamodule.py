@@ -4,6 +4,7 @@ mutable LightningDataModule that accepts generated samples between epochs.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import warnings
 from collections.abc import Mapping, Sequence
@@ -13,12 +14,12 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import ConcatDataset, DataLoader
 
 from lightning_vtr.data.dataset import (
     GeneratedDataset,
     GeneratedSample,
-    ImageTransform,
     VTRDataset,
     dump_index,
     load_rgba,
@@ -26,9 +27,10 @@ from lightning_vtr.data.dataset import (
     write_generated_sample,
 )
 from lightning_vtr.data.format import ObjectRecord
+from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.deprecation import renamed_argument
-from lightning_vtr.utils.validation import check_int, check_type
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["VIEW_SETS", "VTRDataModule"]
 
@@ -66,8 +68,20 @@ class VTRDataModule(L.LightningDataModule):
             for the 3D-R2N2 / Pix2Vox layout (one view set, served as "aligned").
         num_views: images per sample.
         image_size: side of the model input in pixels.
-        background: RGB compositing background.
-        normalize: ``"imagenet"`` or ``None``.
+        background: RGB compositing background (in training too, unless ``background_range`` is given).
+        normalize: ``"imagenet"``, ``"pm1"`` (``x * 2 - 1``, the same as mean = std = 0.5) or ``None``.
+        background_range: training only: a per-sample random background, each channel an int in
+            ``(low, high)`` inclusive (a pair for all channels, or three pairs); validation and test keep
+            ``background``. ``None``: ``background`` in training too.
+        recipe: the image recipe (see :data:`~lightning_vtr.data.transforms.IMAGE_RECIPES`): ``"plain"`` (the
+            default; built from ``background``, ``normalize`` and ``background_range``), ``"pix2vox"`` or
+            ``"lrgt"`` (the published recipes of Pix2Vox++ and LRGT), or an
+            :class:`~lightning_vtr.data.transforms.ImageRecipe` (or a dict of its fields; the hyperparameters
+            hold it as one, so ``hparams.yaml`` stays loadable). A recipe other than ``"plain"`` sets the
+            background and normalisation itself: leave those three arguments at their defaults, or pass
+            ``dataclasses.replace(IMAGE_RECIPES["pix2vox"], normalize="imagenet")`` to change one. Random
+            training ops are drawn per ``(seed, epoch, index)``; use ``reload_dataloaders_every_n_epochs=1`` so
+            every epoch draws its own.
         batch_size: per-process batch size.
         num_workers: dataloader workers.
         test_view_sets: view sets served by ``test_dataloader`` (one loader each, in this order).
@@ -84,6 +98,7 @@ class VTRDataModule(L.LightningDataModule):
     Example:
         >>> dm = VTRDataModule(num_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
         >>> trainer.fit(model, datamodule=dm)  # doctest: +SKIP
+        >>> dm = VTRDataModule(recipe="pix2vox", image_size=224)  # doctest: +SKIP
     """
 
     def __init__(
@@ -105,6 +120,8 @@ class VTRDataModule(L.LightningDataModule):
         test_repeats: int = 1,
         embedded: dict[str, Any] | None = None,
         n_views: int | None = None,
+        background_range: Sequence[int] | Sequence[Sequence[int]] | None = None,
+        recipe: ImageRecipe | str | Mapping[str, Any] = "plain",
     ) -> None:
         super().__init__()
         # Resolved before save_hyperparameters(), which reads the arguments' current values.
@@ -129,10 +146,16 @@ class VTRDataModule(L.LightningDataModule):
                     f"got {shapenet_rendering!r} (missing {sorted(missing)})"
                 )
         self.save_hyperparameters(ignore=["n_views"])
+        if isinstance(recipe, ImageRecipe):
+            self.hparams["recipe"] = dataclasses.asdict(recipe)
         self.root = Path(root).expanduser() if root is not None else None
         self.shapenet_rendering = shapenet_rendering
         self.num_views = int(num_views)
-        self.transform = ImageTransform(image_size, background, normalize)
+        self.recipe = _resolve_recipe(recipe, background, normalize, background_range)
+        #: validation/test (and the callback's) transform; ``train_transform`` adds the recipe's random ops.
+        self.transform = self.recipe.eval_transform(image_size)
+        differs = self.recipe.is_random or self.recipe.background_range is not None
+        self.train_transform = self.recipe.train_transform(image_size) if differs else self.transform
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.test_view_sets = tuple(test_view_sets)
@@ -226,7 +249,7 @@ class VTRDataModule(L.LightningDataModule):
             self.split_records(split),
             view_set,
             num_views=self.num_views,
-            transform=self.transform,
+            transform=self.train_transform if train else self.transform,
             train=train,
             seed=self.seed,
             repeats=self.test_repeats if split == "test" else 1,
@@ -237,10 +260,12 @@ class VTRDataModule(L.LightningDataModule):
 
     def train_dataset(self) -> torch.utils.data.Dataset:
         base = self._dataset("train", "aligned", train=True)
-        base.epoch = self._epoch()
+        base.set_epoch(self._epoch())
         if not self._generated:
             return base
-        generated = GeneratedDataset(self._generated, self.generated_dir, self._by_key, self.transform)
+        generated = GeneratedDataset(
+            self._generated, self.generated_dir, self._by_key, self.train_transform, seed=self.seed, epoch=self._epoch()
+        )
         return ConcatDataset([base, generated])
 
     def _loader(self, dataset: torch.utils.data.Dataset, shuffle: bool) -> DataLoader:
@@ -258,6 +283,13 @@ class VTRDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
+        reload = getattr(self.trainer, "reload_dataloaders_every_n_epochs", 1) if self.trainer is not None else 1
+        if self.train_transform.is_random and reload != 1:
+            rank_zero_warn(
+                f"VTRDataModule: the recipe's random image ops are drawn per (seed, epoch, index) when the train "
+                f"loader is built; with `reload_dataloaders_every_n_epochs={reload}` some epochs reuse an earlier "
+                "epoch's augmentations. Set it to 1 for fresh ones every epoch."
+            )
         return self._loader(self.train_dataset(), shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
@@ -353,3 +385,36 @@ class VTRDataModule(L.LightningDataModule):
                 f"The checkpoint lists {len(missing)} generated samples missing under {self.generated_dir} "
                 f"(first: {missing[0]}). Pass `generated_dir` pointing at the run's generated samples."
             )
+
+
+def _resolve_recipe(
+    recipe: ImageRecipe | str | Mapping[str, Any],
+    background: Sequence[int],
+    normalize: str | None,
+    background_range: Sequence[int] | Sequence[Sequence[int]] | None,
+) -> ImageRecipe:
+    """The datamodule's image recipe: ``"plain"`` from the three arguments, else the named or given recipe,
+    which must not meet a non-default background or normalisation it would silently override."""
+    if isinstance(recipe, str):
+        check_choice("recipe", recipe, tuple(IMAGE_RECIPES))
+        if recipe == "plain":
+            return ImageRecipe(background=background, background_range=background_range, normalize=normalize)
+        resolved = IMAGE_RECIPES[recipe]
+    elif isinstance(recipe, Mapping):
+        resolved = ImageRecipe(**recipe)
+    else:
+        resolved = check_type("recipe", recipe, ImageRecipe, "a recipe name, an ImageRecipe or a dict of its fields")
+    given = {"background": background, "normalize": normalize, "background_range": background_range}
+    for name, value in given.items():
+        default = getattr(IMAGE_RECIPES["plain"], name)
+        if value is None or default is None or isinstance(value, str):
+            is_default = value == default
+        else:
+            is_default = tuple(value) == tuple(default)
+        if not is_default:
+            raise ValueError(
+                f"`{name}` must be left at its default {default!r} with `recipe={recipe!r}`, which sets it "
+                f"({getattr(resolved, name)!r}), got {value!r}; pass "
+                f"`recipe=dataclasses.replace(<recipe>, {name}=...)` to change it"
+            )
+    return resolved

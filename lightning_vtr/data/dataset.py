@@ -8,22 +8,22 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 from torch.utils.data import Dataset
 
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import ObjectRecord
+from lightning_vtr.data.transforms import IMAGENET_MEAN, IMAGENET_STD, ImageTransform
 from lightning_vtr.utils.deprecation import renamed_argument
 from lightning_vtr.utils.io import atomic_open, atomic_write
-from lightning_vtr.utils.validation import check_choice, check_int
+from lightning_vtr.utils.validation import check_int
 
 __all__ = [
     "IMAGENET_MEAN",
@@ -37,8 +37,13 @@ __all__ = [
     "write_generated_sample",
 ]
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+# The last entry of a generated sample's augmentation key, which keeps it apart from the training objects' keys.
+_GENERATED_STREAM = 1
+
+
+def _transform(transform: Callable[..., Tensor], images: np.ndarray, key: tuple[int, ...]) -> Tensor:
+    # A key only for the package's own transform: a user's callable keeps its one-argument form.
+    return transform(images, key=key) if isinstance(transform, ImageTransform) else transform(images)
 
 
 def load_rgba(path: str | Path) -> np.ndarray:
@@ -56,72 +61,14 @@ def load_voxels(record: ObjectRecord) -> Tensor:
     return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis).astype(np.float32))
 
 
-def _check_background(background: Sequence[int]) -> tuple[int, int, int]:
-    """``background`` as three ints in ``[0, 255]`` (R, G, B)."""
-    try:
-        channels = tuple(background)
-    except TypeError:
-        raise TypeError(
-            f"`background` must be a sequence of three ints (R, G, B), got {type(background).__name__} {background!r}"
-        ) from None
-    if len(channels) != 3:
-        raise ValueError(f"`background` must be three ints (R, G, B) in [0, 255], got {background!r}")
-    r, g, b = (check_int(f"background[{i}]", c, minimum=0, maximum=255) for i, c in enumerate(channels))
-    return r, g, b
-
-
-class ImageTransform:
-    """RGBA uint8 images -> model input: composite on a background, resize, scale, normalise.
-
-    Args:
-        image_size: output side ``S`` in pixels.
-        background: RGB background (0-255) composited under transparent pixels.
-        normalize: ``"imagenet"`` (mean/std of ImageNet, what the ResNet/DeiT backbones expect) or ``None`` ([0, 1]).
-
-    Call it on ``(H, W, 4)`` or ``(T, H, W, 4)`` uint8 arrays; returns ``(3, S, S)`` or ``(T, 3, S, S)`` float32.
-    """
-
-    def __init__(
-        self,
-        image_size: int = 224,
-        background: Sequence[int] = (255, 255, 255),
-        normalize: str | None = "imagenet",
-    ) -> None:
-        image_size = check_int("image_size", image_size, minimum=1)
-        background = _check_background(background)
-        check_choice("normalize", normalize, ("imagenet", None))
-        self.image_size = image_size
-        self.background = background
-        self.normalize = normalize
-
-    def __call__(self, rgba: np.ndarray) -> Tensor:
-        single = rgba.ndim == 3
-        batch = rgba[None] if single else rgba
-        if batch.ndim != 4 or batch.shape[-1] not in (3, 4):
-            raise ValueError(f"`rgba` must be (H, W, 4) or (T, H, W, 4) RGBA images, got shape {rgba.shape}")
-        x = torch.from_numpy(np.ascontiguousarray(batch)).float() / 255.0  # (T, H, W, C)
-        if x.shape[-1] == 4:
-            alpha = x[..., 3:]
-            bg = torch.tensor(self.background, dtype=x.dtype) / 255.0
-            x = x[..., :3] * alpha + bg * (1.0 - alpha)
-        x = x.permute(0, 3, 1, 2)
-        if x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
-            x = F.interpolate(
-                x, size=(self.image_size, self.image_size), mode="bilinear", antialias=True, align_corners=False
-            )
-            x = x.clamp(0.0, 1.0)
-        if self.normalize == "imagenet":
-            x = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-        return x[0] if single else x
-
-
 class VTRDataset(Dataset):
     """One item per object: ``num_views`` images of one view set, the object's voxels and viewpoints.
 
-    In training the views are drawn afresh every epoch as a function of ``(seed, epoch, index)`` (set
-    ``epoch`` before building each epoch's loader), so a resumed run and every DDP rank draw exactly the
-    views an uninterrupted single-process run would; in evaluation (``train=False``) they are a fixed
-    function of ``(seed, index)``.
+    In training the views are drawn afresh every epoch as a function of ``(seed, epoch, index)`` (call
+    :meth:`set_epoch` before building each epoch's loader), so a resumed run and every DDP rank draw exactly
+    the views an uninterrupted single-process run would; in evaluation (``train=False``) they are a fixed
+    function of ``(seed, index)``. A random ``transform`` (a training recipe) is called with the key
+    ``(seed, epoch, index)`` too, so its augmentation follows the same rule.
 
     In evaluation ``repeats > 1`` serves every object ``repeats`` times in a row (item ``i`` is object
     ``i // repeats``), each time with another fixed choice of views: more view sets per object cut the
@@ -133,9 +80,10 @@ class VTRDataset(Dataset):
         records: the objects, one item each (``repeats`` items each in evaluation).
         view_set: the view set the images are drawn from.
         num_views: images per item (at most the number of views of every object).
-        transform: RGBA uint8 images -> model input (default :class:`ImageTransform`).
+        transform: RGBA uint8 images -> model input (default :class:`ImageTransform`); an
+            :class:`ImageTransform` gets the key ``(seed, epoch, index)``, any other callable the images only.
         train: draw views afresh every epoch (else a fixed choice per item).
-        seed: seeds the view choice.
+        seed: seeds the view choice and the augmentation.
         repeats: items per object, each with its own fixed view choice; must be 1 in training.
         n_views: deprecated alias of ``num_views``.
     """
@@ -191,6 +139,10 @@ class VTRDataset(Dataset):
     def __len__(self) -> int:
         return len(self.records) * self.repeats
 
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the training views and augmentations of ``epoch`` from now on (also the ``epoch`` attribute)."""
+        self.epoch = check_int("epoch", epoch, minimum=0)
+
     def view_indices(self, index: int) -> np.ndarray:
         """Which of the object's views item ``index`` uses (fixed in evaluation)."""
         obj, repeat = divmod(index, self.repeats)
@@ -225,7 +177,7 @@ class VTRDataset(Dataset):
         chosen = self.view_indices(index)
         images = np.stack([load_rgba(paths[i]) for i in chosen])
         return {
-            "images": self.transform(images),
+            "images": _transform(self.transform, images, (self.seed, self.epoch, index)),
             "voxels": load_voxels(rec),
             "viewpoints": torch.as_tensor(np.asarray(viewpoints)[chosen], dtype=torch.float32),
             "category": rec.category,
@@ -287,7 +239,12 @@ def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
 
 
 class GeneratedDataset(Dataset):
-    """Serves generated view sets (index entries from :func:`write_generated_sample`) as training items."""
+    """Serves generated view sets (index entries from :func:`write_generated_sample`) as training items.
+
+    A random ``transform`` draws a sample's augmentation from ``(seed, epoch, id, 1)``, ``id`` being the
+    entry's stable sample id (its position when the entry has none), so it does not change when older
+    samples are dropped and never coincides with a training object's key ``(seed, epoch, index)``.
+    """
 
     def __init__(
         self,
@@ -295,21 +252,31 @@ class GeneratedDataset(Dataset):
         directory: Path,
         records: dict[tuple[str, str], ObjectRecord],
         transform: ImageTransform | None = None,
+        *,
+        seed: int = 0,
+        epoch: int = 0,
     ) -> None:
         self.entries = list(entries)
         self.directory = Path(directory)
         self.records = records
         self.transform = transform or ImageTransform()
+        self.seed = int(seed)
+        self.epoch = check_int("epoch", epoch, minimum=0)
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the augmentations of ``epoch`` from now on."""
+        self.epoch = check_int("epoch", epoch, minimum=0)
 
     def __getitem__(self, index: int) -> dict:
         entry = self.entries[index]
         sample_dir = self.directory / entry["dir"]
         images = np.stack([load_rgba(sample_dir / name) for name in entry["images"]])
+        key = (self.seed, self.epoch, int(entry.get("id", index)), _GENERATED_STREAM)
         return {
-            "images": self.transform(images),
+            "images": _transform(self.transform, images, key),
             "voxels": load_voxels(self.records[(entry["category"], entry["object_id"])]),
             "viewpoints": torch.as_tensor(entry["viewpoints"], dtype=torch.float32),
             "category": entry["category"],

@@ -1,4 +1,4 @@
-"""Voxel reconstruction metrics (DESIGN section 7): IoU at thresholds and F-score@1 %.
+"""Voxel reconstruction metrics (DESIGN section 7): IoU at thresholds, best-threshold IoU and F-score@1 %.
 
 Classes are torchmetrics ``Metric``s that sync across processes; the math lives in
 :mod:`lightning_vtr.metrics.functional`.
@@ -6,7 +6,24 @@ Classes are torchmetrics ``Metric``s that sync across processes; the math lives 
 
 from __future__ import annotations
 
-from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, voxel_fscore, voxel_iou
-from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU
+from lightning_vtr.metrics.functional import (
+    DEFAULT_FSCORE_CONVENTION,
+    DEFAULT_IOU_THRESHOLDS,
+    FSCORE_CONVENTIONS,
+    voxel_fscore,
+    voxel_iou,
+    voxel_iou_best,
+)
+from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU, VoxelIoUBest
 
-__all__ = ["DEFAULT_IOU_THRESHOLDS", "VoxelFScore", "VoxelIoU", "voxel_fscore", "voxel_iou"]
+__all__ = [
+    "DEFAULT_FSCORE_CONVENTION",
+    "DEFAULT_IOU_THRESHOLDS",
+    "FSCORE_CONVENTIONS",
+    "VoxelFScore",
+    "VoxelIoU",
+    "VoxelIoUBest",
+    "voxel_fscore",
+    "voxel_iou",
+    "voxel_iou_best",
+]

@@ -15,10 +15,17 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, check_thresholds, voxel_fscore, voxel_iou
-from lightning_vtr.utils.validation import check_float, check_int
+from lightning_vtr.metrics.functional import (
+    DEFAULT_FSCORE_CONVENTION,
+    DEFAULT_IOU_THRESHOLDS,
+    FSCORE_CONVENTIONS,
+    check_thresholds,
+    voxel_fscore,
+    voxel_iou,
+)
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
-__all__ = ["VoxelFScore", "VoxelIoU"]
+__all__ = ["VoxelFScore", "VoxelIoU", "VoxelIoUBest"]
 
 
 class _PerObjectMean(Metric):
@@ -158,6 +165,66 @@ class VoxelIoU(_PerObjectMean):
         return self._mean()
 
 
+class VoxelIoUBest(VoxelIoU):
+    r"""Best-threshold mean IoU, the number VTR's test script prints ("The IoU score of N-view-input").
+
+    .. math::
+        \mathrm{IoU}_{\mathrm{best}} = \max_t \mathrm{mIoU}_t, \quad
+        \mathrm{mIoU}_t = \frac{1}{N}\sum_{n=1}^{N} \mathrm{IoU}_t^{(n)}
+
+    The mean over all objects comes first, the maximum over thresholds second: one threshold for the
+    whole evaluation, as VTR's ``test_on_voxel.py`` takes ``np.max`` of the overall per-threshold
+    means over (0.2, 0.3, 0.4, 0.5). It is not the mean of per-object best IoUs, which is never lower.
+
+    ``update`` as :class:`VoxelIoU`. ``compute()`` returns the scalar best mean IoU;
+    :meth:`compute_threshold` the threshold that attains it (the lowest one on ties, like
+    ``np.argmax``); :meth:`compute_per_category` each category's mean IoU at that same threshold,
+    so that a per-category table and its overall row use one threshold.
+
+    Args:
+        thresholds: the candidate thresholds (Pix2Vox++/VTR's .2, .3, .4, .5 by default).
+        categories: category vocabulary for per-category means (see :meth:`add_categories`).
+        kwargs: passed to :class:`torchmetrics.Metric`.
+
+    Raises:
+        TypeError: ``thresholds`` is not a sequence of numbers.
+        ValueError: ``thresholds`` is empty or holds a value outside ``[0, 1]``.
+
+    Example:
+        >>> metric = VoxelIoUBest(thresholds=(0.4, 0.5))
+        >>> g = torch.zeros(2, 2, 2, 2); g[:, 0] = 1
+        >>> p = torch.zeros(2, 2, 2, 2); p[0, 0] = 0.45; p[1, 0, 0] = 0.9
+        >>> metric.update(p, g, categories=["chair", "lamp"])  # IoU at (0.4, 0.5): (1, 0) and (0.5, 0.5)
+        >>> metric.compute(), metric.compute_threshold()
+        (tensor(0.7500), 0.4)
+        >>> metric.compute_per_category()
+        {'chair': tensor(1.), 'lamp': tensor(0.5000)}
+    """
+
+    def _best_index(self) -> int:
+        return int(torch.argmax(super().compute().reshape(-1)))
+
+    def compute(self) -> Tensor:
+        """Scalar: the largest of the per-threshold mean IoUs."""
+        return super().compute().reshape(-1).max()
+
+    def compute_threshold(self) -> float:
+        """The threshold whose mean IoU is :meth:`compute` (synced across processes like ``compute``)."""
+        with self.sync_context(
+            dist_sync_fn=self.dist_sync_fn,
+            process_group=self.process_group,
+            should_sync=self._to_sync and not self._is_synced,
+            distributed_available=self.distributed_available_fn,
+        ):
+            index = self._best_index()
+        return self.thresholds[index]
+
+    def compute_per_category(self) -> dict[str, Tensor]:
+        """Mean IoU of each category seen at the overall best threshold (scalars)."""
+        index = self.thresholds.index(self.compute_threshold())
+        return {name: value.reshape(-1)[index] for name, value in super().compute_per_category().items()}
+
+
 class VoxelFScore(_PerObjectMean):
     r"""Mean surface F-score over objects (F-score@1 % by default).
 
@@ -166,9 +233,13 @@ class VoxelFScore(_PerObjectMean):
         P = \frac{|\{x \in X: D(x, Y) < d\}|}{|X|}, \quad R = \frac{|\{y \in Y: D(y, X) < d\}|}{|Y|}
 
     with ``X`` and ``Y`` points sampled on the marching-cubes surfaces of the binarised prediction
-    and the ground truth (see :func:`~lightning_vtr.metrics.functional.voxel_fscore`, which also
-    defines the empty cases). Each ``update`` samples with a fresh generator seeded by ``seed``,
-    so the metric equals the mean of the functional over the same batches.
+    and the ground truth (see :func:`~lightning_vtr.metrics.functional.voxel_fscore`). By default
+    the surfaces and sampling follow the ``"community"`` convention (What3D's code with the Open3D
+    sampler of LegoFormer's published numbers); ``convention="centred"`` gives this package's
+    first version, which reads up to about 0.05 lower on the same grids. Exactly one empty grid
+    scores 0, two empty grids 1. Each ``update`` samples with a
+    fresh generator seeded by ``seed``, so the metric equals the mean of the functional over the
+    same batches.
 
     ``update(preds, target, categories=None)``: ``(B, R, R, R)`` tensors and optional names.
     ``compute()`` returns a scalar; :meth:`compute_per_category` returns ``{category: scalar}``.
@@ -176,14 +247,17 @@ class VoxelFScore(_PerObjectMean):
     Args:
         threshold: binarisation threshold of the prediction.
         num_points: points sampled on each surface.
-        distance: distance threshold ``d`` in the unit cube.
+        distance: distance threshold ``d`` in the convention's coordinates (1 % of the cube's side).
+        convention: ``"community"`` (default) or ``"centred"``; see
+            :func:`~lightning_vtr.metrics.functional.surface_points`.
         seed: seed of the point sampling.
         categories: category vocabulary for per-category means.
         kwargs: passed to :class:`torchmetrics.Metric`.
 
     Raises:
         TypeError: a number argument of the wrong type (e.g. a float ``num_points``).
-        ValueError: ``threshold`` outside ``[0, 1]``, ``num_points < 1`` or ``distance <= 0``.
+        ValueError: ``threshold`` outside ``[0, 1]``, ``num_points < 1``, ``distance <= 0`` or an
+            unknown ``convention``.
 
     Example:
         >>> metric = VoxelFScore()
@@ -201,8 +275,10 @@ class VoxelFScore(_PerObjectMean):
         distance: float = 0.01,
         seed: int = 0,
         categories: Sequence[str] | None = None,
+        convention: str = DEFAULT_FSCORE_CONVENTION,
         **kwargs: Any,
     ) -> None:
+        self.convention = check_choice("convention", convention, FSCORE_CONVENTIONS)
         self.threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
         self.num_points = check_int("num_points", num_points, minimum=1)
         self.distance = check_float("distance", distance, minimum=0.0, min_open=True)
@@ -212,7 +288,13 @@ class VoxelFScore(_PerObjectMean):
     def update(self, preds: Tensor, target: Tensor, categories: Sequence[str] | None = None) -> None:
         """Add the F-score of a batch of objects ``(B, R, R, R)``."""
         scores = voxel_fscore(
-            preds, target, threshold=self.threshold, num_points=self.num_points, distance=self.distance, seed=self.seed
+            preds,
+            target,
+            threshold=self.threshold,
+            num_points=self.num_points,
+            distance=self.distance,
+            convention=self.convention,
+            seed=self.seed,
         )
         self._accumulate(scores.unsqueeze(1), categories)
 

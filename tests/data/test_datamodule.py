@@ -1,8 +1,10 @@
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import socket
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ import torch.multiprocessing as mp
 
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.dataset import GeneratedSample, ImageTransform
+from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe
 
 
 def _dm(root, **kw):
@@ -186,10 +189,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _ddp_worker(rank, world, port, root, gen_dir, out):
+def _ddp_worker(rank, world, port, root, gen_dir, out, recipe="plain"):
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
     dist.init_process_group("gloo", rank=rank, world_size=world)
-    dm = VTRDataModule(root, image_size=32, generated_dir=gen_dir)
+    dm = VTRDataModule(root, image_size=32, generated_dir=gen_dir, recipe=recipe)
     dm.setup("fit")
     # Every rank adds the same (gathered) samples, as the callback does; all write the same files.
     dm.add_samples([_sample(dm, i, fill=10 * i) for i in range(3)])
@@ -209,8 +212,10 @@ def _ddp_worker(rank, world, port, root, gen_dir, out):
 
 
 def test_two_process_ddp_sees_identical_datasets(tiny_dataset, tmp_path):
+    # With Pix2Vox++'s recipe: views, random augmentation and generated samples must all agree across ranks.
     out = tmp_path / "ddp.pt"
-    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tiny_dataset), str(tmp_path / "gen"), str(out)), nprocs=2)
+    args = (2, _free_port(), str(tiny_dataset), str(tmp_path / "gen"), str(out), "pix2vox")
+    mp.spawn(_ddp_worker, args=args, nprocs=2)
     r0, r1 = torch.load(out)
     assert r0["len"] == r1["len"] == 21 + 3
     assert r0["digest"] == r1["digest"]
@@ -224,3 +229,93 @@ def test_train_order_is_the_same_at_every_iteration_of_an_epoch(tiny_dataset):
     assert next(iter(loader))["object_id"] == first  # Lightning may iterate a loader more than once
     assert sorted(first) == sorted(r.object_id for r in dm.split_records("train"))
     assert first != [r.object_id for r in dm.split_records("train")]  # but it is shuffled
+
+
+# ---------------------------------------------------------------------------------------------- image recipes
+def test_default_recipe_is_the_plain_transform(tiny_dataset):
+    dm = _dm(tiny_dataset)
+    assert dm.recipe == IMAGE_RECIPES["plain"] and dm.train_transform is dm.transform
+    assert not dm.transform.is_random and dm.hparams["recipe"] == "plain"
+    custom = _dm(tiny_dataset, background=(0, 0, 0), normalize="pm1")
+    assert custom.recipe == ImageRecipe(background=(0, 0, 0), normalize="pm1")
+    corner = next(iter(custom.val_dataloader()))["images"][0, 0, :, 0, 0]
+    assert corner.tolist() == [-1.0, -1.0, -1.0]  # black background, x * 2 - 1
+
+
+def test_plain_recipe_with_a_background_range_draws_only_in_training(tiny_dataset):
+    dm = _dm(tiny_dataset, normalize=None, background=(240, 240, 240), background_range=(225, 255))
+    assert dm.train_transform.is_random and not dm.transform.is_random
+    val = next(iter(dm.val_dataloader()))["images"]
+    assert torch.allclose(val[..., 0, 0], torch.full_like(val[..., 0, 0], 240 / 255))
+    train = next(iter(dm.train_dataloader()))["images"][..., 0, 0] * 255  # (B, T, 3) corner colours
+    assert torch.all((train > 224.99) & (train < 255.01))
+    assert torch.allclose(train, train[:, :1].expand_as(train))  # one colour per sample, all its views
+    assert len({tuple(c.round().tolist()) for c in train[:, 0]}) > 1  # but not one for all samples
+
+
+@pytest.mark.parametrize("recipe", ["pix2vox", "lrgt"])
+def test_reference_recipes_test_on_background_240_in_plus_minus_one(tiny_dataset, recipe):
+    dm = _dm(tiny_dataset, recipe=recipe, batch_size=64)
+    assert dm.recipe is IMAGE_RECIPES[recipe] and dm.train_transform.is_random
+    for batch in [next(iter(dm.val_dataloader()))] + [next(iter(dl)) for dl in dm.test_dataloader()]:
+        corners = batch["images"][..., 0, 0]
+        assert torch.allclose(corners, torch.full_like(corners, 240 / 255 * 2 - 1), atol=1e-6)
+    train = next(iter(dm.train_dataloader()))["images"]
+    assert train.shape == (21, 3, 3, 32, 32)
+    if recipe == "lrgt":  # no jitter: [0, 1] images, so [-1, 1]; Pix2Vox++'s unclamped jitter leaves it
+        assert train.min() >= -1.0 and train.max() <= 1.0
+
+
+def test_recipe_augmentation_depends_on_seed_epoch_and_index_only(tiny_dataset):
+    def items(dm, epoch):
+        dm.trainer = SimpleNamespace(current_epoch=epoch, reload_dataloaders_every_n_epochs=1)
+        ds = dm.train_dataset()
+        return torch.stack([ds[i]["images"] for i in range(len(ds))])
+
+    first = items(_dm(tiny_dataset, recipe="pix2vox"), 3)
+    # A resumed run's datamodule at the same epoch, and one that saw other epochs first, serve the same tensors.
+    later = _dm(tiny_dataset, recipe="pix2vox")
+    items(later, 0)
+    assert torch.equal(items(later, 3), first)
+    assert not torch.equal(items(later, 4), first)  # a new epoch, new augmentation
+    assert not torch.equal(items(_dm(tiny_dataset, recipe="pix2vox", seed=1), 3), first)
+
+
+def test_recipe_augmentation_does_not_depend_on_dataloader_workers(tiny_dataset):
+    batches = []
+    for workers in (0, 2):
+        dm = _dm(tiny_dataset, recipe="pix2vox", num_workers=workers, batch_size=8)
+        batches.append([b["images"] for b in dm.train_dataloader()])
+    assert len(batches[0]) == len(batches[1]) == 3
+    assert all(torch.equal(a, b) for a, b in zip(*batches))
+
+
+def test_recipe_object_and_conflicting_arguments(tiny_dataset):
+    mine = dataclasses.replace(IMAGE_RECIPES["pix2vox"], normalize="imagenet")
+    dm = _dm(tiny_dataset, recipe=mine)
+    assert dm.recipe is mine and dm.transform.normalize == "imagenet"
+    with pytest.raises(ValueError, match=r"`normalize` must be left at its default 'imagenet' with `recipe='lrgt'`"):
+        VTRDataModule(str(tiny_dataset), recipe="lrgt", normalize=None)
+    with pytest.raises(ValueError, match=r"`background` must be left at its default"):
+        VTRDataModule(str(tiny_dataset), recipe="pix2vox", background=(240, 240, 240))
+    with pytest.raises(ValueError, match=r"`background_range` must be left at its default None"):
+        VTRDataModule(str(tiny_dataset), recipe=mine, background_range=(0, 255))
+    with pytest.raises(ValueError, match=r"`recipe` must be one of 'plain', 'pix2vox', 'lrgt', got 'pix2vox\+\+'"):
+        VTRDataModule(str(tiny_dataset), recipe="pix2vox++")
+    with pytest.raises(TypeError, match=r"`recipe` must be a recipe name, an ImageRecipe or a dict of its fields"):
+        VTRDataModule(str(tiny_dataset), recipe=0.9)
+    # A recipe object lands in the hyperparameters as a dict of its fields, which rebuilds the same recipe.
+    assert dm.hparams["recipe"] == dataclasses.asdict(mine)
+    assert VTRDataModule(str(tiny_dataset), recipe=dm.hparams["recipe"]).recipe == mine
+    with pytest.raises(ValueError, match=r"`normalize` must be one of 'imagenet', 'pm1', None, got 'half'"):
+        VTRDataModule(str(tiny_dataset), normalize="half")
+
+
+def test_random_recipe_warns_without_a_reload_every_epoch(tiny_dataset):
+    dm = _dm(tiny_dataset, recipe="lrgt")
+    dm.trainer = SimpleNamespace(current_epoch=0, reload_dataloaders_every_n_epochs=0)
+    with pytest.warns(UserWarning, match=r"reload_dataloaders_every_n_epochs=0"):
+        dm.train_dataloader()
+    plain = _dm(tiny_dataset)
+    plain.trainer = dm.trainer
+    plain.train_dataloader()  # the plain recipe draws nothing, so nothing to warn about

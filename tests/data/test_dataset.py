@@ -1,4 +1,5 @@
-"""Datasets and transforms of lightning_vtr.data.dataset: input checks, the num_views alias, atomic writes."""
+"""Datasets and transforms of lightning_vtr.data.dataset: input checks, the num_views alias, atomic writes, and the
+augmentation key each dataset hands its transform."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 import torch
 
 from lightning_vtr.data.dataset import (
+    GeneratedDataset,
     GeneratedSample,
     ImageTransform,
     VTRDataset,
@@ -17,6 +19,7 @@ from lightning_vtr.data.dataset import (
     write_generated_sample,
 )
 from lightning_vtr.data.format import scan_dataset
+from lightning_vtr.data.transforms import IMAGE_RECIPES
 
 
 def test_image_transform_composites_on_the_background_and_scales():
@@ -41,7 +44,7 @@ def test_image_transform_composites_on_the_background_and_scales():
         ),
         ({"background": (0, 0, 300)}, ValueError, r"`background\[2\]` must be an int in \[0, 255\], got 300"),
         ({"background": 255}, TypeError, r"`background` must be a sequence of three ints"),
-        ({"normalize": "unit"}, ValueError, r"`normalize` must be one of 'imagenet', None, got 'unit'"),
+        ({"normalize": "unit"}, ValueError, r"`normalize` must be one of 'imagenet', 'pm1', None, got 'unit'"),
     ],
 )
 def test_image_transform_rejects_bad_arguments(kwargs, error, match):
@@ -121,3 +124,42 @@ def test_generated_sample_and_index_are_written_atomically(tmp_path):
         write_generated_sample(GeneratedSample("chair", "c0", images[..., :3], np.zeros((2, 2))), tmp_path / "s1")
     with pytest.raises(ValueError, match=r"`viewpoints` of generated sample chair/c0 must be \(2, 2\), got \(3, 2\)"):
         write_generated_sample(GeneratedSample("chair", "c0", images, np.zeros((3, 2))), tmp_path / "s1")
+
+
+def test_training_items_are_augmented_by_seed_epoch_and_index(tiny_dataset):
+    records = [r for r in scan_dataset(tiny_dataset) if r.split == "train"]
+    transform = IMAGE_RECIPES["pix2vox"].train_transform(16)
+    ds = VTRDataset(records, "aligned", transform=transform, train=True, seed=4)
+    ds.set_epoch(2)
+    item = ds[5]
+    images = np.stack([load_rgba(records[5].views["aligned"][0][i]) for i in ds.view_indices(5)])
+    assert torch.equal(item["images"], transform(images, key=(4, 2, 5)))
+    again = VTRDataset(records, "aligned", transform=IMAGE_RECIPES["pix2vox"].train_transform(16), train=True, seed=4)
+    again.set_epoch(2)
+    assert torch.equal(again[5]["images"], item["images"])  # another instance, same key, same tensors
+    ds.set_epoch(3)
+    assert not torch.equal(ds[5]["images"], item["images"])
+    assert ds.epoch == 3
+    with pytest.raises(ValueError, match=r"`epoch` must be an int >= 0, got -1"):
+        ds.set_epoch(-1)
+    # Any other callable keeps its one-argument form.
+    plain = VTRDataset(records, "aligned", transform=lambda x: torch.as_tensor(x.shape), train=True)
+    assert plain[0]["images"].tolist() == [3, 64, 64, 4]
+
+
+def test_generated_items_are_augmented_by_their_sample_id(tmp_path, tiny_dataset):
+    records = {(r.category, r.object_id): r for r in scan_dataset(tiny_dataset)}
+    (category, object_id), _ = next(iter(records.items()))
+    entries = []
+    for i in range(3):
+        images = np.random.default_rng(i).integers(0, 256, (3, 16, 16, 4), dtype=np.uint8)
+        sample = GeneratedSample(category, object_id, images, np.zeros((3, 2)))
+        entries.append(write_generated_sample(sample, tmp_path / f"s{i}") | {"id": 10 + i})
+    transform = IMAGE_RECIPES["pix2vox"].train_transform(8)
+    full = GeneratedDataset(entries, tmp_path, records, transform, seed=1, epoch=5)
+    trimmed = GeneratedDataset(entries[1:], tmp_path, records, transform, seed=1, epoch=5)
+    assert torch.equal(full[2]["images"], trimmed[1]["images"])  # dropping older samples changes nothing
+    images = np.stack([load_rgba(tmp_path / "s2" / n) for n in entries[2]["images"]])
+    assert torch.equal(full[2]["images"], transform(images, key=(1, 5, 12, 1)))
+    full.set_epoch(6)
+    assert not torch.equal(full[2]["images"], trimmed[1]["images"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lightning_vtr.metrics import VoxelFScore, VoxelIoU, voxel_fscore, voxel_iou
+from lightning_vtr.metrics import VoxelFScore, VoxelIoU, VoxelIoUBest, voxel_fscore, voxel_iou, voxel_iou_best
 
 
 def _batches():
@@ -43,6 +43,90 @@ def test_fscore_class_is_mean_of_functional():
         metric.update(p, g)
         scores.append(voxel_fscore(p, g, num_points=256, seed=5))
     assert metric.compute().item() == pytest.approx(torch.cat(scores).mean().item(), abs=1e-6)
+
+
+@pytest.mark.parametrize("convention", ["community", "centred"])
+def test_fscore_class_passes_convention(convention):
+    metric = VoxelFScore(num_points=256, seed=5, convention=convention)
+    scores = []
+    for p, g in _batches():
+        metric.update(p, g)
+        scores.append(voxel_fscore(p, g, num_points=256, seed=5, convention=convention))
+    assert metric.convention == convention
+    assert metric.compute().item() == pytest.approx(torch.cat(scores).mean().item(), abs=1e-6)
+
+
+def test_fscore_class_default_is_community():
+    assert VoxelFScore().convention == "community"
+    g = torch.zeros(1, 16, 16, 16)
+    g[0, 4:12, 4:12, 4:12] = 1
+    p = torch.roll(g, 1, dims=1)
+    default, centred = VoxelFScore(), VoxelFScore(convention="centred")
+    default.update(p, g)
+    centred.update(p, g)
+    assert default.compute().item() == voxel_fscore(p, g, convention="community").item()
+    assert centred.compute().item() == voxel_fscore(p, g, convention="centred").item()
+    assert default.compute().item() != centred.compute().item()
+
+
+def _best_batches() -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Two batches; IoU at (0.4, 0.5): batch 0 holds (1, 0) and (1, 0), batch 1 holds (0.5, 1)."""
+    g = torch.zeros(3, 2, 2, 2)
+    g[:, 0] = 1
+    p = torch.zeros(3, 2, 2, 2)
+    p[:2, 0] = 0.45
+    p[2] = 0.42
+    p[2, 0] = 0.9
+    return [(p[:2], g[:2]), (p[2:], g[2:])]
+
+
+def test_iou_best_class_takes_the_max_of_overall_means():
+    metric = VoxelIoUBest(thresholds=(0.4, 0.5), categories=["chair", "lamp"])
+    batches = _best_batches()
+    for (p, g), c in zip(batches, [["chair", "lamp"], ["lamp"]]):
+        metric.update(p, g, c)
+    # Overall means (2.5 / 3, 1 / 3): best 0.8333 at 0.4. The batch bests are 1 and 1, and the mean of
+    # per-object maxima is 1: neither is VTR's number.
+    assert metric.compute().item() == pytest.approx(2.5 / 3)
+    assert metric.compute_threshold() == 0.4
+    p_all = torch.cat([p for p, _ in batches])
+    g_all = torch.cat([g for _, g in batches])
+    assert metric.compute().item() == pytest.approx(voxel_iou_best(p_all, g_all, thresholds=(0.4, 0.5)).item())
+    # Per category at the overall best threshold 0.4 (lamp alone would be best at 0.5 with 0.5).
+    per_cat = metric.compute_per_category()
+    assert list(per_cat) == ["chair", "lamp"]
+    assert per_cat["chair"].item() == 1.0
+    assert per_cat["lamp"].item() == pytest.approx(0.75)
+
+
+def test_iou_best_class_switches_threshold_and_breaks_ties_low():
+    metric = VoxelIoUBest(thresholds=(0.4, 0.5))
+    p, g = _best_batches()[1]
+    metric.update(p, g)
+    assert metric.compute().item() == 1.0 and metric.compute_threshold() == 0.5
+    tie = VoxelIoUBest(thresholds=(0.3, 0.4, 0.5))
+    tie.update(g.clone(), g)  # IoU 1 at every threshold
+    assert tie.compute().item() == 1.0 and tie.compute_threshold() == 0.3
+    # Default thresholds are VTR's (0.2, 0.3, 0.4, 0.5).
+    assert VoxelIoUBest().thresholds == (0.2, 0.3, 0.4, 0.5)
+
+
+def test_iou_best_class_syncs_like_iou():
+    batches = _best_batches()
+    ranks = [VoxelIoUBest(thresholds=(0.4, 0.5)) for _ in range(2)]
+    for metric, (p, g) in zip(ranks, batches):
+        metric.update(p, g)
+
+    def gather_from_both(tensor: torch.Tensor, group=None) -> list[torch.Tensor]:
+        name = next(n for n in ranks[0]._defaults if getattr(ranks[0], n) is tensor)
+        return [getattr(r, name).clone() for r in ranks]
+
+    ranks[0].dist_sync_fn = gather_from_both
+    ranks[0].distributed_available_fn = lambda: True
+    # Alone, rank 0 (two objects best at 0.4) and rank 1 (best at 0.5) disagree; synced: 0.4.
+    assert ranks[0].compute().item() == pytest.approx(2.5 / 3)
+    assert ranks[0].compute_threshold() == 0.4
+    assert ranks[0].count.item() == 2
 
 
 def test_metric_sync_equals_single_process_on_union():
@@ -84,3 +168,7 @@ def test_constructor_argument_errors():
         VoxelFScore(num_points="8")
     with pytest.raises(TypeError, match="^`categories` must be a sequence of names, got str 'chair'$"):
         VoxelIoU(categories="chair")
+    with pytest.raises(ValueError, match="^`convention` must be one of 'community', 'centred', got 'legoformer'$"):
+        VoxelFScore(convention="legoformer")
+    with pytest.raises(ValueError, match=r"^`thresholds\[0\]` must be a number in \[0, 1\], got -1.0$"):
+        VoxelIoUBest(thresholds=(-1.0,))
