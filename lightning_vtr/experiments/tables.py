@@ -12,19 +12,45 @@ from collections.abc import Iterable, Mapping, Sequence
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.validation import check_choice
 
-__all__ = ["TABLE_FORMATS", "VIEW_SET_TITLES", "format_cell", "format_robustness_table", "results_from_test_output"]
+__all__ = [
+    "BEST_IOU",
+    "TABLE_FORMATS",
+    "VIEW_SET_TITLES",
+    "best_threshold_iou",
+    "format_cell",
+    "format_robustness_table",
+    "results_from_test_output",
+]
 
 #: Printed titles of the view sets, the table's column groups (in the paper's order, :data:`VIEW_SETS`).
 VIEW_SET_TITLES: dict[str, str] = {name: name.capitalize() for name in VIEW_SETS}
 #: Output formats of :func:`format_robustness_table`.
 TABLE_FORMATS = ("markdown", "text")
-_METRIC_TITLES = {"fscore": "F-score"}
+#: Name of the derived metric :func:`best_threshold_iou` (the IoU VTR's test script prints).
+BEST_IOU = "iou_best"
+_METRIC_TITLES = {"fscore": "F-score", BEST_IOU: "best mIoU"}
 
 
 def _metric_title(name: str) -> str:
     if name.startswith("iou@"):
         return "mIoU" if name == "iou@0.4" else f"mIoU@{name[4:]}"
     return _METRIC_TITLES.get(name, name)
+
+
+def best_threshold_iou(metrics: Mapping[str, float]) -> float | None:
+    """The best-threshold mIoU of one view set: the largest of its ``iou@<t>`` values, ``None`` without any.
+
+    Each logged ``iou@<t>`` is a mean over the test objects at threshold ``t``, so their maximum is the
+    number VTR's test script prints ("the IoU score": the maximum over thresholds of the mean IoU, one
+    threshold for the whole set), not the mean of per-object maxima
+    (:func:`~lightning_vtr.metrics.voxel_iou_best` computes it from volumes).
+
+    Example:
+        >>> best_threshold_iou({"iou@0.3": 0.41, "iou@0.4": 0.43, "iou@0.5": 0.40, "fscore": 0.2})
+        0.43
+    """
+    values = [float(v) for k, v in metrics.items() if k.startswith("iou@") and not math.isnan(float(v))]
+    return max(values) if values else None
 
 
 def results_from_test_output(outputs: Iterable[Mapping[str, float]], method: str | None = None) -> dict:

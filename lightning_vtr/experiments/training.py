@@ -133,9 +133,7 @@ VARIANTS: dict[str, StrategyVariant] = {
     "visible": StrategyVariant("error_guided", {"score": "visible"}, title="Visible"),
     "visible_nms": StrategyVariant("error_guided", _VISIBLE_NMS, title="Visible + NMS"),
     "visible_tau": StrategyVariant("error_guided", {**_VISIBLE_NMS, "temperature": 1.0}, title="Visible + NMS, tau 1"),
-    "visible_tau3": StrategyVariant(
-        "error_guided", {**_VISIBLE_NMS, "temperature": 3.0}, title="Visible + NMS, tau 3"
-    ),
+    "visible_tau3": StrategyVariant("error_guided", {**_VISIBLE_NMS, "temperature": 3.0}, title="Visible + NMS, tau 3"),
     "visible_nms_search": StrategyVariant(
         "error_guided",
         _VISIBLE_NMS,
@@ -413,7 +411,11 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
         deterministic=False,
     )
     kwargs.update(config.trainer_kwargs)
-    return L.Trainer(callbacks=callbacks or [], **kwargs)
+    from lightning_vtr.utils.feedback import EpochSummary, silence_lightning_tips
+
+    silence_lightning_tips()  # Lightning 2.6 advertises two cloud services at every Trainer
+    # a line per epoch (epoch, train loss, val IoU, time) instead of minutes of silence between epochs
+    return L.Trainer(callbacks=[*(callbacks or []), EpochSummary()], **kwargs)
 
 
 def evaluate(
@@ -440,6 +442,9 @@ def evaluate(
     kwargs["devices"] = 1
     if timer is not None:
         kwargs["callbacks"] = [*kwargs.get("callbacks", []), timer]
+    from lightning_vtr.utils.feedback import silence_lightning_tips
+
+    silence_lightning_tips()
     trainer = L.Trainer(**kwargs)
     return results_from_test_output(trainer.test(model, datamodule=dm, verbose=False))
 
