@@ -28,15 +28,21 @@ across processes at epoch end. Per-category results need the category vocabulary
 on every process under DDP: pass ``categories`` or let :meth:`setup` take ``datamodule.categories``.
 :func:`lightning_vtr.experiments.tables.results_from_test_output` turns ``trainer.test(...)`` output into
 the nested dict the paper-style table takes.
+
+:meth:`VoxelReconstructionModule.load_from_checkpoint` builds the model inside
+:func:`~lightning_vtr.models.weights.restoring_checkpoint`: a model reads no pretrained weight file
+then (its hyperparameters still name the file), because the checkpoint's state dict holds every weight.
+A checkpoint therefore loads on a machine without that file.
 """
 
 from __future__ import annotations
 
 import abc
 import math
+import os
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import IO, TYPE_CHECKING, Any
 
 import lightning as L
 import torch
@@ -44,8 +50,17 @@ from torch import Tensor, nn
 
 from lightning_vtr.metrics import VoxelFScore, VoxelIoU
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
+from lightning_vtr.models.weights import restoring_checkpoint
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
+
+try:  # Lightning's classmethod that refuses to be called on an instance (whose result would be dropped)
+    from lightning.pytorch.utilities.model_helpers import _restricted_classmethod
+except ImportError:  # pragma: no cover - depends on the Lightning version
+    _restricted_classmethod = classmethod
+
+if TYPE_CHECKING:
+    from typing_extensions import Self  # typing.Self needs Python 3.11
 
 __all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
 
@@ -104,6 +119,30 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
         self.val_metrics = metrics()
         self.test_metrics = nn.ModuleDict({name: metrics() for name in VIEW_SETS})
+
+    @_restricted_classmethod
+    def load_from_checkpoint(
+        cls,
+        checkpoint_path: str | os.PathLike | IO,
+        map_location: Any = None,
+        hparams_file: str | os.PathLike | None = None,
+        strict: bool | None = None,
+        weights_only: bool | None = None,
+        **kwargs: Any,
+    ) -> Self:
+        """Lightning's ``load_from_checkpoint``, with the model built inside
+        :func:`~lightning_vtr.models.weights.restoring_checkpoint`.
+
+        Pretrained weight files named by the hyperparameters (``backbone_weights``, ...) are not read:
+        the checkpoint's state dict replaces every weight anyway, and the file may not exist on this
+        machine. Arguments are Lightning's (``weights_only`` needs Lightning >= 2.4).
+        """
+        if weights_only is not None:
+            kwargs["weights_only"] = weights_only
+        with restoring_checkpoint():
+            return super().load_from_checkpoint(
+                checkpoint_path, map_location=map_location, hparams_file=hparams_file, strict=strict, **kwargs
+            )
 
     # ------------------------------------------------------------------ what subclasses implement
     @abc.abstractmethod

@@ -2,15 +2,21 @@
 
 The ``paper`` preset follows DESIGN section 5 (ResNet-50 to ``layer2``, about 96.3 M parameters,
 224 px input); the ``tiny`` preset keeps the structure with a small convolutional backbone and
-narrow layers so it trains on a laptop CPU (64 px input).
+narrow layers so it trains on a laptop CPU (64 px input). :meth:`Pix2VoxPlusPlus.from_official_checkpoint`
+reads the checkpoints the Pix2Vox++ authors released.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import os
+import pickle
+import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -18,9 +24,10 @@ from torch import Tensor, nn
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
-from lightning_vtr.utils.validation import check_choice
+from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
+from lightning_vtr.utils.validation import check_choice, check_type
 
-__all__ = ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec"]
+__all__ = ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec", "reference_init_"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +47,11 @@ class Pix2VoxSpec:
         merger_stride: the merger scores views on a grid this many times coarser than the volume
             (average-pooled features, nearest-upsampled scores). 1 in the paper; the tiny preset
             uses 2 because scoring 32^3 voxels per view dominates a CPU training step.
+        init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s:
+            convolutions Kaiming-normal, BatchNorm weight 1 / bias 0, Linear N(0, 0.01), biases 0) or
+            ``"torch"`` (PyTorch's defaults).
+        two_stage_loss: the default loss: ``True`` for Pix2Vox++'s pretraining loss
+            ``10 * (BCE(coarse) + BCE(refined))``, ``False`` for ``BCE(refined)``.
     """
 
     image_size: int
@@ -50,6 +62,8 @@ class Pix2VoxSpec:
     refiner_hidden: int
     small_backbone_channels: tuple[int, ...] = ()
     merger_stride: int = 1
+    init: str = "reference"
+    two_stage_loss: bool = True
 
     @property
     def backbone_channels(self) -> int:
@@ -65,7 +79,9 @@ class Pix2VoxSpec:
         return self.image_size // (self.backbone_stride * 4)
 
 
-#: The named presets. ``paper``: DESIGN section 5. ``tiny``: 64 px, about 0.2 M parameters.
+#: The named presets. ``paper``: DESIGN section 5, with Pix2Vox++'s initialisation and pretraining loss.
+#: ``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
+#: initialisation and ``BCE(refined)``, as in 0.1, so that its training runs and figures stay comparable.
 PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
     "paper": Pix2VoxSpec(
         image_size=224,
@@ -84,10 +100,13 @@ PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
         refiner_channels=(4, 8, 16),
         refiner_hidden=256,
         merger_stride=2,
+        init="torch",
+        two_stage_loss=False,
     ),
 }
 
 _RESOLUTION = 32  # four doublings from the 2^3 seed volume
+_INITS = ("reference", "torch")
 
 
 def _conv_bn_relu(c_in: int, c_out: int, pool: bool) -> nn.Sequential:
@@ -140,6 +159,16 @@ class _Decoder(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         features = self.layers(x)
         return torch.cat([features, torch.sigmoid(self.to_volume(features))], dim=1)
+
+    def reference_init_(self) -> None:
+        """Pix2Vox++'s initialisation (:func:`reference_init_`), with the volume head's as released.
+
+        The released head is ``ConvTranspose3d(C, 1, 1)``, whose Kaiming ``fan_in`` is its one output
+        channel (std ``sqrt(2)``); ours is the same map as ``Conv3d(C, 1, 1)``, drawn through the transposed
+        view to match.
+        """
+        reference_init_(self)
+        nn.init.kaiming_normal_(self.to_volume.weight.transpose(0, 1))
 
 
 def _conv3d_bn_lrelu(c_in: int, c_out: int) -> nn.Sequential:
@@ -205,6 +234,127 @@ class _Refiner(nn.Module):
         return (coarse + self.up3(x).squeeze(1)) * 0.5
 
 
+def reference_init_(module: nn.Module) -> None:
+    """Pix2Vox++'s initialisation of every layer of ``module``, in place.
+
+    Conv2d / Conv3d / ConvTranspose3d weights Kaiming-normal with PyTorch's defaults (``a = 0``,
+    ``mode="fan_in"``: std ``sqrt(2 / fan_in)``, where PyTorch takes ``fan_in`` from a weight's dim 1, i.e. the
+    *output* channels of a transposed convolution); their biases 0. BatchNorm weight 1, bias 0 (running
+    statistics untouched). Linear weight N(0, 0.01), bias 0.
+    """
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Conv3d, nn.ConvTranspose3d)):
+            nn.init.kaiming_normal_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, (nn.BatchNorm2d, nn.BatchNorm3d)):
+            nn.init.ones_(m.weight)
+            nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.Linear):
+            nn.init.normal_(m.weight, 0.0, 0.01)
+            nn.init.zeros_(m.bias)
+
+
+# ---------------------------------------------------------------------- the released checkpoint layout
+_OFFICIAL_PARTS = ("encoder", "decoder", "merger", "refiner")
+# The released ResNet-50 is nn.Sequential(conv1, bn1, relu, maxpool, layer1, layer2, ...)[:6].
+_OFFICIAL_RESNET = {"resnet.0.": "conv1.", "resnet.1.": "bn1.", "resnet.4.": "layer1.", "resnet.5.": "layer2."}
+_OFFICIAL_VOLUME_HEAD = "decoder.to_volume.weight"
+
+
+def _official_prefixes(spec: Pix2VoxSpec) -> dict[str, dict[str, str]]:
+    """Per released part: released name prefix -> our name prefix (below the part's module)."""
+    if spec.backbone == "resnet50":
+        backbone = {old: f"backbone.{new}" for old, new in _OFFICIAL_RESNET.items()}
+    else:  # no released counterpart; a Sequential in the released position keeps its indices
+        backbone = {f"resnet.{i}.": f"backbone.{i}." for i in range(3 * len(spec.small_backbone_channels))}
+    n = len(spec.decoder_channels)
+    return {
+        "encoder": {**backbone, "layer1.": "layer1.", "layer2.": "layer2.", "layer3.": "layer3."},
+        "decoder": {**{f"layer{i + 1}.": f"layers.{i}." for i in range(n)}, f"layer{n + 1}.0.": "to_volume."},
+        "merger": {
+            **{f"layer{i + 1}.": f"context.{i}." for i in range(4)},
+            "layer5.": "score.0.",
+            "layer6.": "score.1.",
+        },
+        "refiner": {
+            "layer1.": "down1.",
+            "layer2.": "down2.",
+            "layer3.": "down3.",
+            "layer4.0.": "fc.0.",
+            "layer5.0.": "fc.2.",
+            "layer6.": "up1.",
+            "layer7.": "up2.",
+            "layer8.": "up3.",
+        },
+    }
+
+
+def _read_official(checkpoint: str | os.PathLike | Mapping[str, Any]) -> tuple[str, Mapping[str, Any]]:
+    check_type("checkpoint", checkpoint, (str, os.PathLike, Mapping), "path or a loaded checkpoint (a mapping)")
+    if isinstance(checkpoint, Mapping):
+        return "checkpoint", checkpoint
+    name = os.fspath(checkpoint)
+    if not os.path.isfile(name):
+        raise FileNotFoundError(f"Pix2Vox++ checkpoint not found: {name}")
+    # The released files also hold solver states and the best IoU, pickled as a NumPy scalar.
+    safe_globals = getattr(torch.serialization, "safe_globals", None)  # torch >= 2.5
+    try:
+        with safe_globals(_numpy_scalar_globals()) if safe_globals else contextlib.nullcontext():
+            loaded = torch.load(name, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise ValueError(
+            f"{name} holds objects that weights-only loading refuses ({err}). If you trust the file, load it with "
+            "torch.load(path, map_location='cpu', weights_only=False) and pass the resulting dict instead."
+        ) from err
+    if not isinstance(loaded, Mapping):
+        raise ValueError(f"{name} must hold a dict with {_layout_keys()}, got {type(loaded).__name__}")
+    return name, loaded
+
+
+def _numpy_scalar_globals() -> list[Any]:
+    """What ``weights_only`` loading needs for NumPy scalars pickled by NumPy 1 or 2."""
+    try:
+        from numpy._core.multiarray import scalar
+    except ImportError:  # pragma: no cover - NumPy 1
+        from numpy.core.multiarray import scalar
+    dtypes = getattr(np, "dtypes", None)
+    classes = [getattr(dtypes, t) for t in ("Float64DType", "Float32DType", "Int64DType")] if dtypes else []
+    return [(scalar, "numpy.core.multiarray.scalar"), (scalar, "numpy._core.multiarray.scalar"), np.dtype, *classes]
+
+
+def _layout_keys() -> str:
+    return ", ".join(f"'{p}_state_dict'" for p in _OFFICIAL_PARTS)
+
+
+def _map_official(name: str, checkpoint: Mapping[str, Any], spec: Pix2VoxSpec) -> dict[str, Tensor]:
+    """The released ``{encoder,decoder,merger,refiner}_state_dict`` as one state dict in our names."""
+    absent = [f"{p}_state_dict" for p in _OFFICIAL_PARTS if not isinstance(checkpoint.get(f"{p}_state_dict"), Mapping)]
+    if absent:
+        raise ValueError(
+            f"{name} is not a released Pix2Vox++ checkpoint: it must hold {_layout_keys()}; missing {absent}, "
+            f"found keys {sorted(map(str, checkpoint))}"
+        )
+    prefixes = _official_prefixes(spec)
+    state: dict[str, Tensor] = {}
+    unknown: list[str] = []
+    for part in _OFFICIAL_PARTS:
+        rules = sorted(prefixes[part].items(), key=lambda rule: -len(rule[0]))
+        for key, value in checkpoint[f"{part}_state_dict"].items():
+            bare = key[len("module.") :] if key.startswith("module.") else key  # DataParallel / DDP wrapper
+            rule = next(((old, new) for old, new in rules if bare.startswith(old)), None)
+            if rule is None:
+                unknown.append(f"{part}_state_dict: {key}")
+                continue
+            state[f"{part}.{rule[1]}{bare[len(rule[0]) :]}"] = value
+    if _OFFICIAL_VOLUME_HEAD in state:
+        # Released: ConvTranspose3d(C, 1, 1), weight (C, 1, 1, 1, 1); ours: the same map as Conv3d(C, 1, 1).
+        state[_OFFICIAL_VOLUME_HEAD] = state[_OFFICIAL_VOLUME_HEAD].transpose(0, 1)
+    if unknown:
+        raise ValueError(f"{name}: keys without a counterpart in Pix2VoxPlusPlus: {unknown[:10]} ({len(unknown)} keys)")
+    return state
+
+
 class Pix2VoxPlusPlus(VoxelReconstructionModule):
     """Pix2Vox++/A multi-view voxel reconstruction (Xie et al. 2020), as used by the VTR paper.
 
@@ -212,6 +362,11 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
     features; the context-aware merger fuses any number of views; the refiner corrects the fused
     volume. Outputs of :meth:`reconstruct`: ``"voxels"`` (refined, ``(B, 32, 32, 32)``),
     ``"coarse_voxels"`` (merged) and ``"view_voxels"`` (``(B, V, 32, 32, 32)``).
+
+    Recipe defaults come from the preset (:class:`Pix2VoxSpec`): the ``paper`` preset uses Pix2Vox++'s
+    initialisation and pretraining loss ``10 * (BCE(coarse) + BCE(refined))``; the ``tiny`` preset (ours, not
+    published) keeps PyTorch's initialisation and ``BCE(refined)``, so its runs stay comparable with 0.1.
+    The loss is computed in float32 with autocast off (BCE refuses half precision under CUDA autocast).
 
     Args:
         preset: ``"paper"`` (224 px, ResNet-50 to layer2, ~96.3 M parameters) or ``"tiny"`` (64 px).
@@ -221,16 +376,26 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         betas: Adam betas.
         milestones: epochs at which MultiStepLR multiplies the learning rates by ``gamma``.
         gamma: MultiStepLR factor (published: 0.5).
-        two_stage_loss: use the original loss ``10 * (BCE(coarse) + BCE(refined))`` instead of
-            ``BCE(refined)``.
-        backbone_weights: path to a torchvision ResNet-50 state dict (``paper`` preset only).
-        freeze_backbone: keep the ResNet-50 fixed, as published; ``None`` freezes it exactly when
-            ``backbone_weights`` is given (a random backbone must train).
+        two_stage_loss: ``True``: Pix2Vox++'s pretraining loss ``10 * (BCE(coarse) + BCE(refined))``;
+            ``False``: ``BCE(refined)``, what VTR fine-tunes with; ``None``: the preset's
+            (``paper``: ``True``, ``tiny``: ``False``). Fine-tuning a ``paper`` model as VTR does: ``False``.
+        backbone_weights: torchvision ResNet-50 weights for the ``paper`` preset: a local file, an
+            ``http(s)://`` / ``file://`` URL (downloaded once into torch.hub's cache) or ``"imagenet"``
+            (torchvision's ``IMAGENET1K_V1``); see :func:`~lightning_vtr.models.weights.load_weights`.
+            Not read by :meth:`load_from_checkpoint`, whose state dict holds the weights.
+        freeze_backbone: keep the ResNet-50 (or the tiny preset's small backbone) fixed. Pix2Vox++
+            trains it, so the default is ``False``. ``None`` (deprecated) freezes it exactly when
+            ``backbone_weights`` is given, the default before 0.2.
+        init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s,
+            see :func:`reference_init_`), ``"torch"`` (PyTorch's defaults) or ``None``: the preset's
+            (``paper``: ``"reference"``, ``tiny``: ``"torch"``).
         iou_thresholds, fscore_threshold, fscore_points, validation_fscore, categories: see
             :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
 
     Raises:
-        ValueError: on an unknown preset, weights for a preset without ResNet-50, or bad sizes.
+        ValueError: on an unknown preset or init, weights for a preset without ResNet-50, or bad sizes.
+        FileNotFoundError, ~lightning_vtr.models.weights.WeightsDownloadError: if ``backbone_weights``
+            cannot be read or downloaded.
 
     Example:
         >>> model = Pix2VoxPlusPlus(preset="tiny")
@@ -247,17 +412,38 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         betas: tuple[float, float] = (0.9, 0.999),
         milestones: tuple[int, ...] = (150,),
         gamma: float = 0.5,
-        two_stage_loss: bool = False,
+        two_stage_loss: bool | None = None,
         backbone_weights: str | None = None,
-        freeze_backbone: bool | None = None,
+        freeze_backbone: bool | None = False,
+        init: str | None = None,
         iou_thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS,
         fscore_threshold: float = 0.4,
         fscore_points: int = 8192,
         validation_fscore: bool = True,
         categories: tuple[str, ...] | None = None,
     ) -> None:
+        # 1. resolve the preset's defaults first: save_hyperparameters() records the values in effect
         check_choice("preset", preset, PIX2VOX_PRESETS)
         spec = PIX2VOX_PRESETS[preset]
+        init = spec.init if init is None else check_choice("init", init, _INITS)
+        two_stage_loss = spec.two_stage_loss if two_stage_loss is None else bool(two_stage_loss)
+        if backbone_weights is not None and spec.backbone != "resnet50":
+            raise ValueError(
+                f"`backbone_weights` must be None for preset {preset!r}, which has no ResNet-50 backbone "
+                f"(preset 'paper' has one), got {backbone_weights!r}"
+            )
+        if freeze_backbone is None:
+            warnings.warn(
+                "`freeze_backbone=None` (freeze exactly when `backbone_weights` is given) is deprecated and will be "
+                "removed in 0.3; Pix2Vox++ trains its backbone. Pass freeze_backbone=True to keep it fixed.",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            freeze_backbone = backbone_weights is not None
+        # Resolved (downloaded, or found missing) before the network is built; a restored checkpoint brings its own.
+        weights_file = None
+        if backbone_weights is not None and not is_restoring_checkpoint():
+            weights_file = fetch_weights(backbone_weights, kind="resnet50")
         super().__init__(
             image_size=spec.image_size,
             num_views=num_views,
@@ -271,6 +457,8 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         self.save_hyperparameters()
         self.preset = preset
         self.spec = spec
+
+        # 2. build the network
         self.encoder = _Encoder(spec)
         seed_channels = spec.encoder_channels[-1] * spec.feature_size**2
         if seed_channels % 8:
@@ -280,15 +468,74 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         self.decoder = _Decoder(seed_channels // 8, spec.decoder_channels)
         self.merger = _ContextAwareMerger(spec.decoder_channels[-1] + 1, spec.merger_stride)
         self.refiner = _Refiner(spec.refiner_channels, spec.refiner_hidden)
-        if backbone_weights is not None:
-            if spec.backbone != "resnet50":
-                raise ValueError(
-                    f"`backbone_weights` must be None for preset {preset!r}, which has no ResNet-50 backbone "
-                    f"(preset 'paper' has one), got {backbone_weights!r}"
-                )
-            load_torchvision_resnet50(self.encoder.backbone, backbone_weights)
-        freeze = backbone_weights is not None if freeze_backbone is None else freeze_backbone
-        self.encoder.backbone.requires_grad_(not freeze)
+
+        # 3. initialise: the reference recipe leaves a ResNet-50 as torchvision (or its weights) made it
+        if init == "reference":
+            for name, child in self.encoder.named_children():
+                if name != "backbone" or spec.backbone != "resnet50":
+                    reference_init_(child)
+            self.decoder.reference_init_()
+            reference_init_(self.merger)
+            reference_init_(self.refiner)
+
+        # 4. pretrained backbone weights
+        if weights_file is not None:
+            load_torchvision_resnet50(self.encoder.backbone, weights_file)
+        self.encoder.backbone.requires_grad_(not freeze_backbone)
+
+    @classmethod
+    def from_official_checkpoint(
+        cls, checkpoint: str | os.PathLike | Mapping[str, Any], *, preset: str = "paper", **kwargs: Any
+    ) -> Pix2VoxPlusPlus:
+        """A model holding the weights of a checkpoint released by the Pix2Vox++ authors.
+
+        The released layout is ``{"encoder_state_dict", "decoder_state_dict", "merger_state_dict",
+        "refiner_state_dict"}`` (plus solver states, ignored), with the ``module.`` prefix of
+        ``DataParallel`` / ``DistributedDataParallel`` (optional here). Names map onto ours part by part
+        (the ResNet-50 ``resnet.0/1/4/5`` -> ``backbone.conv1/bn1/layer1/layer2``, decoder ``layer1-4`` ->
+        ``layers.0-3``, merger ``layer1-6`` -> ``context.0-3`` / ``score.0-1``, refiner ``layer1-8`` ->
+        ``down1-3`` / ``fc.0,2`` / ``up1-3``); the decoder's 1x1x1 transposed-convolution volume head is
+        transposed into our equivalent convolution. BatchNorm ``num_batches_tracked`` may be absent (files
+        from PyTorch < 0.4.1). Inputs must be preprocessed as the reference does (224 px, RGB normalised
+        with mean = std = 0.5).
+
+        Args:
+            checkpoint: the released ``.pth`` file (read with ``weights_only=True``), or its loaded dict.
+            preset: the architecture; the released checkpoints are ``"paper"`` models.
+            **kwargs: other arguments of :class:`Pix2VoxPlusPlus` (``lr``, ``two_stage_loss``, ...);
+                ``backbone_weights`` is not read.
+
+        Returns:
+            the model, in training mode (call ``.eval()`` for inference).
+
+        Raises:
+            FileNotFoundError: if the file does not exist.
+            ValueError: naming the file and the keys, if it lacks a part, holds a key we have no
+                counterpart for, misses one of ours, or a shape differs.
+        """
+        name, loaded = _read_official(checkpoint)
+        with restoring_checkpoint():
+            model = cls(preset=preset, **kwargs)
+        state = _map_official(name, loaded, model.spec)
+        own = model.state_dict()
+        for key, value in own.items():
+            if key.endswith("num_batches_tracked"):
+                state.setdefault(key, value)
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        wrong = [
+            f"{k}: expected {tuple(own[k].shape)}, found {tuple(state[k].shape)}"
+            for k in sorted(set(own) & set(state))
+            if own[k].shape != state[k].shape
+        ]
+        if missing or unexpected or wrong:
+            raise ValueError(
+                f"{name} does not match Pix2VoxPlusPlus(preset={preset!r}): missing keys {missing[:10]} "
+                f"({len(missing)}), unexpected keys {unexpected[:10]} ({len(unexpected)}), shape mismatches "
+                f"{wrong[:10]} ({len(wrong)})"
+            )
+        model.load_state_dict(state, strict=True)
+        return model
 
     def reconstruct(self, images: Tensor) -> dict[str, Tensor]:
         """``images (B, V, 3, H, W)`` -> ``{"voxels", "coarse_voxels": (B, R, R, R), "view_voxels": (B, V, R, R, R)}``."""
@@ -300,12 +547,18 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         return {"voxels": self.refiner(coarse), "coarse_voxels": coarse, "view_voxels": raw[:, :, -1]}
 
     def loss(self, outputs: dict[str, Tensor], target: Tensor) -> Tensor:
-        """BCE of the refined volume, or the published ``10 * (BCE(coarse) + BCE(refined))``."""
-        target = target.to(outputs["voxels"].dtype)
-        refined = F.binary_cross_entropy(outputs["voxels"], target)
-        if not self.hparams.two_stage_loss:
-            return refined
-        return 10 * (F.binary_cross_entropy(outputs["coarse_voxels"], target) + refined)
+        """BCE of the refined volume, or Pix2Vox++'s ``10 * (BCE(coarse) + BCE(refined))`` (``two_stage_loss``).
+
+        Computed in float32 with autocast off (probabilities and target cast to float32):
+        ``binary_cross_entropy`` refuses to run under CUDA autocast, where it is unsafe in float16.
+        """
+        refined = outputs["voxels"]
+        with torch.autocast(device_type=refined.device.type, enabled=False):
+            target = target.float()
+            loss = F.binary_cross_entropy(refined.float(), target)
+            if self.hparams.two_stage_loss:
+                loss = 10 * (F.binary_cross_entropy(outputs["coarse_voxels"].float(), target) + loss)
+        return loss
 
     def configure_optimizers(self) -> dict[str, Any]:
         hp = self.hparams

@@ -3,7 +3,8 @@
 Pix2Vox++ encodes each view with an ImageNet ResNet-50 truncated after ``layer2`` (512 channels at
 stride 8). No torchvision build is usable here, so the module is written out with torchvision's
 module names (``conv1``, ``bn1``, ``layer1.0.conv1``, ``layer1.0.downsample.0``, ...) and
-:func:`load_torchvision_resnet50` reads a full ``resnet50`` state dict from a local file.
+:func:`load_torchvision_resnet50` reads a full ``resnet50`` state dict from a local file, a URL or
+``"imagenet"`` (torchvision's ImageNet weights, through torch.hub's cache).
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-import torch
 from torch import Tensor, nn
 
+from lightning_vtr.models.weights import load_weights
 from lightning_vtr.utils.validation import check_type
 
 __all__ = ["Bottleneck", "ResNet50Stem", "load_torchvision_resnet50"]
@@ -86,7 +87,9 @@ class ResNet50Stem(nn.Module):
         return self.layer2(self.layer1(x))
 
 
-def load_torchvision_resnet50(module: ResNet50Stem, source: str | os.PathLike | Mapping[str, Tensor]) -> None:
+def load_torchvision_resnet50(
+    module: ResNet50Stem, source: str | os.PathLike | Mapping[str, Tensor], *, progress: bool = True
+) -> None:
     """Load a torchvision-format ResNet-50 state dict into ``module`` (in place).
 
     ``layer3``, ``layer4`` and ``fc`` entries are ignored; every other key must match exactly
@@ -94,25 +97,22 @@ def load_torchvision_resnet50(module: ResNet50Stem, source: str | os.PathLike | 
 
     Args:
         module: the truncated ResNet-50.
-        source: a path to a file saved with ``torch.save(resnet50().state_dict(), path)``
-            (optionally wrapped as ``{"state_dict": ...}``), or the state dict itself.
+        source: a local file saved with ``torch.save(resnet50().state_dict(), path)`` (optionally
+            wrapped as ``{"state_dict": ...}``), an ``http(s)://`` or ``file://`` URL (downloaded once
+            into torch.hub's cache), ``"imagenet"`` (torchvision's ``IMAGENET1K_V1`` weights), or the
+            state dict itself. See :func:`~lightning_vtr.models.weights.load_weights`.
+        progress: show a progress bar while downloading.
 
     Raises:
-        TypeError: if ``source`` is neither a path nor a mapping.
+        TypeError: if ``source`` is neither a path, a URL nor a mapping.
         FileNotFoundError: if ``source`` is a path that does not exist.
+        ~lightning_vtr.models.weights.WeightsDownloadError: if a download fails (the message names the
+            URL and the cache path).
         ValueError: naming the missing / unexpected keys or mismatched shapes.
     """
-    check_type("source", source, (str, os.PathLike, Mapping), "path or a state dict (a mapping of tensors)")
-    name = "state dict"
-    if isinstance(source, (str, os.PathLike)):
-        name = os.fspath(source)
-        if not os.path.isfile(name):
-            raise FileNotFoundError(f"ResNet-50 weights file not found: {name}")
-        source = torch.load(name, map_location="cpu", weights_only=True)
-    if isinstance(source, Mapping) and "state_dict" in source and isinstance(source["state_dict"], Mapping):
-        source = source["state_dict"]
-    if not isinstance(source, Mapping):
-        raise ValueError(f"{name}: expected a ResNet-50 state dict (a mapping of tensors), got {type(source).__name__}")
+    check_type("source", source, (str, os.PathLike, Mapping), "path, a URL, 'imagenet' or a state dict")
+    name = "state dict" if isinstance(source, Mapping) else os.fspath(source)
+    source = load_weights(source, kind="resnet50", progress=progress)
     state = {k: v for k, v in source.items() if not k.startswith(_DROPPED_PREFIXES)}
     own = module.state_dict()
     missing = sorted(set(own) - set(state))

@@ -9,6 +9,7 @@ from torch.utils.data import DataLoader
 
 from lightning_vtr.experiments.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.weights import is_restoring_checkpoint
 from lightning_vtr.protocol import ReconstructionModel
 
 
@@ -18,6 +19,7 @@ class _PassThrough(VoxelReconstructionModule):
     def __init__(self, **kwargs):
         super().__init__(image_size=8, num_views=1, voxel_resolution=4, fscore_points=256, **kwargs)
         self.w = torch.nn.Parameter(torch.zeros(()))
+        self.built_while_restoring = is_restoring_checkpoint()
 
     def reconstruct(self, images):
         return {"voxels": images[:, 0, 0, :4, :4, None].expand(-1, 4, 4, 4) + 0 * self.w}
@@ -103,3 +105,16 @@ def test_bad_targets_and_view_sets_raise():
         match=r"`batch\['view_set'\]` must be one of 'aligned', 'hemispherical', 'spherical', got 'sideways'",
     ):
         model.test_step({**batch, "view_set": ["sideways"]}, 0)
+
+
+def test_load_from_checkpoint_builds_the_model_while_restoring(tmp_path):
+    model = _PassThrough()
+    assert not model.built_while_restoring
+    with torch.no_grad():
+        model.w.fill_(2.5)
+    path = tmp_path / "m.ckpt"
+    torch.save({"state_dict": model.state_dict(), "pytorch-lightning_version": L.__version__}, path)
+    loaded = _PassThrough.load_from_checkpoint(path)
+    assert loaded.built_while_restoring and loaded.w.item() == 2.5
+    assert not is_restoring_checkpoint()  # the flag ends with the call
+    assert not _PassThrough().built_while_restoring

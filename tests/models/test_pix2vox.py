@@ -1,15 +1,20 @@
-"""Pix2Vox++: presets, any view count, input errors, preset-checked checkpoints, overfitting."""
+"""Pix2Vox++: presets, any view count, input errors, checkpoints (ours, portable, released), recipe, overfitting."""
 
 from __future__ import annotations
 
+import math
+
 import lightning as L
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import nn
 from torch.utils.data import DataLoader
 
 from lightning_vtr.metrics import voxel_iou
-from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus
+from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, _Decoder
+from lightning_vtr.models.resnet import ResNet50Stem
 from lightning_vtr.protocol import ReconstructionModel
 
 R = 32
@@ -118,17 +123,26 @@ def test_checkpoint_roundtrip_same_preset(tiny, tmp_path):
         torch.testing.assert_close(loaded.predict_voxels(x), tiny.predict_voxels(x))
 
 
-def test_two_stage_loss_weighting():
-    model = Pix2VoxPlusPlus(preset="tiny", two_stage_loss=True)
+def _loss_case() -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Outputs, target, and the hand-computed BCE(refined) and 10 (BCE(coarse) + BCE(refined))."""
     target = torch.zeros(1, R, R, R)
     target[0, :16] = 1
     outputs = {"voxels": torch.full((1, R, R, R), 0.25), "coarse_voxels": torch.full((1, R, R, R), 0.5)}
     # Half the cells are occupied: BCE = (-log 0.25 - log 0.75) / 2 for the refined volume, log 2 for the coarse.
     refined = -(torch.log(torch.tensor(0.25)) + torch.log(torch.tensor(0.75))) / 2
-    expected = 10 * (torch.log(torch.tensor(2.0)) + refined)
-    torch.testing.assert_close(model.loss(outputs, target), expected)
+    return outputs, target, refined, 10 * (torch.log(torch.tensor(2.0)) + refined)
+
+
+def test_two_stage_loss_weighting():
+    outputs, target, refined, two_stage = _loss_case()
+    model = Pix2VoxPlusPlus(preset="tiny", two_stage_loss=True)
+    torch.testing.assert_close(model.loss(outputs, target), two_stage)
     model.hparams.two_stage_loss = False
     torch.testing.assert_close(model.loss(outputs, target), refined)
+    # The tiny preset keeps 0.1's default, BCE(refined).
+    default = Pix2VoxPlusPlus(preset="tiny")
+    assert default.hparams.two_stage_loss is False
+    torch.testing.assert_close(default.loss(outputs, target), refined)
 
 
 def test_optimizer_groups_follow_published_rates():
@@ -175,3 +189,282 @@ def test_tiny_preset_overfits_a_handful_of_objects():
     with torch.no_grad():
         iou = voxel_iou(model.predict_voxels(images), voxels, thresholds=(0.4,))
     assert iou.min() >= 0.9, iou.squeeze(1).tolist()
+
+
+# ---------------------------------------------------------------------- the Pix2Vox++ recipe (paper preset)
+def _stem_weights() -> dict[str, torch.Tensor]:
+    """A torchvision-layout ResNet-50 state dict up to layer2 with values no initialisation produces."""
+    gen = torch.Generator().manual_seed(1)
+    return {
+        k: torch.tensor(7) if k.endswith("num_batches_tracked") else torch.rand(v.shape, generator=gen) + 0.5
+        for k, v in ResNet50Stem().state_dict().items()
+    }
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory):
+    """A fresh paper-preset model built from a weight file: (model, weight file, its state dict)."""
+    path = tmp_path_factory.mktemp("weights") / "resnet50.pth"
+    weights = _stem_weights()
+    torch.save(weights, path)
+    torch.manual_seed(0)
+    return Pix2VoxPlusPlus(preset="paper", backbone_weights=str(path)), path, weights
+
+
+def _non_backbone(model: Pix2VoxPlusPlus) -> list[nn.Module]:
+    modules = [model.encoder.layer1, model.encoder.layer2, model.encoder.layer3]
+    return [m for top in (*modules, model.decoder, model.merger, model.refiner) for m in top.modules()]
+
+
+def test_paper_preset_uses_the_reference_initialisation_and_keeps_the_backbone(paper):
+    model, _, weights = paper
+    assert model.hparams.init == "reference" and PIX2VOX_PRESETS["paper"].init == "reference"
+    for k, v in model.encoder.backbone.state_dict().items():
+        assert torch.equal(v, weights[k]), k  # loaded, then left alone by the initialisation
+    layers = _non_backbone(model)
+    norms = [m for m in layers if isinstance(m, (nn.BatchNorm2d, nn.BatchNorm3d))]
+    assert len(norms) == 3 + 4 + 6 + 5  # encoder, decoder, merger, refiner (up3 has none)
+    assert all(m.weight.eq(1).all() and m.bias.eq(0).all() for m in norms)
+    biases = [m.bias for m in layers if isinstance(m, (nn.Conv2d, nn.Conv3d, nn.Linear)) and m.bias is not None]
+    assert len(biases) == 3 + 6 + 3 + 2 and all(b.eq(0).all() for b in biases)
+    # Kaiming-normal, fan_in: std sqrt(2 / fan_in); PyTorch's default would give 1 / sqrt(3 fan_in).
+    for weight, fan_in, tol in [
+        (model.encoder.layer1[0].weight, 512 * 9, 0.02),
+        (model.decoder.layers[0][0].weight, 512 * 64, 0.02),  # ConvTranspose3d: fan_in from dim 1 (outputs)
+        (model.merger.context[0][0].weight, 9 * 27, 0.1),
+        (model.refiner.down3[0].weight, 64 * 64, 0.02),
+    ]:
+        assert weight.std().item() == pytest.approx(math.sqrt(2 / fan_in), rel=tol)
+        assert abs(weight.mean().item()) < 0.05 * math.sqrt(2 / fan_in)
+    for linear in (model.refiner.fc[0], model.refiner.fc[2]):
+        assert linear.weight.std().item() == pytest.approx(0.01, rel=0.01)
+
+
+def test_volume_head_is_initialised_as_the_released_transposed_convolution():
+    decoder = _Decoder(8, (4096,))
+    torch.manual_seed(0)
+    decoder.reference_init_()
+    # Released: ConvTranspose3d(4096, 1, 1), Kaiming fan_in = 1 output channel -> std sqrt(2), not sqrt(2 / 4096).
+    assert decoder.to_volume.weight.std().item() == pytest.approx(math.sqrt(2), rel=0.05)
+
+
+def test_tiny_preset_keeps_torch_initialisation_unless_asked():
+    assert (PIX2VOX_PRESETS["tiny"].init, PIX2VOX_PRESETS["tiny"].two_stage_loss) == ("torch", False)
+    torch.manual_seed(0)
+    default = Pix2VoxPlusPlus(preset="tiny")
+    assert default.hparams.init == "torch"
+    assert default.encoder.layer1[0].bias.abs().sum() > 0  # PyTorch's default biases are uniform, not 0
+    reference = Pix2VoxPlusPlus(preset="tiny", init="reference")
+    for conv in (reference.encoder.backbone[0], reference.encoder.layer1[0], reference.merger.score[1][0]):
+        assert conv.bias.eq(0).all()  # the small backbone is not pretrained: it is initialised too
+    assert reference.refiner.fc[0].weight.std().item() == pytest.approx(0.01, rel=0.05)
+    with pytest.raises(ValueError, match=r"`init` must be one of 'reference', 'torch', got 'xavier'"):
+        Pix2VoxPlusPlus(preset="tiny", init="xavier")
+
+
+def test_backbone_trains_by_default_and_can_be_frozen(paper):
+    model, _, _ = paper
+    backbone = list(model.encoder.backbone.parameters())
+    assert model.hparams.freeze_backbone is False and all(p.requires_grad for p in backbone)
+    encoder_group = model.configure_optimizers()["optimizer"].param_groups[0]["params"]
+    assert {id(p) for p in backbone} <= {id(p) for p in encoder_group}
+
+    frozen = Pix2VoxPlusPlus(preset="tiny", freeze_backbone=True)
+    assert not any(p.requires_grad for p in frozen.encoder.backbone.parameters())
+    assert all(p.requires_grad for p in frozen.encoder.layer1.parameters())
+    trained = {id(p) for g in frozen.configure_optimizers()["optimizer"].param_groups for p in g["params"]}
+    assert not trained & {id(p) for p in frozen.encoder.backbone.parameters()}
+    # 0.1's `None` (freeze exactly when weights are given) still works, with a warning.
+    with pytest.warns(DeprecationWarning, match="freeze_backbone=None"):
+        legacy = Pix2VoxPlusPlus(preset="tiny", freeze_backbone=None)
+    assert legacy.hparams.freeze_backbone is False and all(p.requires_grad for p in legacy.parameters())
+
+
+def test_paper_preset_pretrains_with_the_two_stage_loss(paper):
+    model, _, _ = paper
+    outputs, target, refined, two_stage = _loss_case()
+    assert model.hparams.two_stage_loss is True
+    torch.testing.assert_close(model.loss(outputs, target), two_stage)
+
+
+def test_loss_runs_in_float32_under_autocast(tiny, monkeypatch):
+    calls = []
+    bce = F.binary_cross_entropy
+
+    def spy(input, target, *args, **kwargs):
+        # CUDA autocast refuses BCE; CPU autocast would quietly upcast, so check what the loss hands it.
+        calls.append((torch.is_autocast_enabled("cpu"), input.dtype, target.dtype))
+        return bce(input, target, *args, **kwargs)
+
+    torch.manual_seed(0)
+    target = (torch.rand(1, R, R, R) > 0.6).float()
+    monkeypatch.setattr(F, "binary_cross_entropy", spy)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        outputs = tiny(torch.randn(1, 2, 3, 64, 64))
+        losses = {}
+        for two_stage in (False, True):
+            tiny.hparams.two_stage_loss = two_stage
+            losses[two_stage] = tiny.loss(outputs, target)
+    tiny.hparams.two_stage_loss = False
+    assert calls == [(False, torch.float32, torch.float32)] * 3  # refined; refined and coarse
+    monkeypatch.undo()
+    assert outputs["voxels"].dtype == torch.bfloat16  # the network did run in bfloat16
+    refined = F.binary_cross_entropy(outputs["voxels"].float(), target)
+    coarse = F.binary_cross_entropy(outputs["coarse_voxels"].float(), target)
+    assert losses[False].dtype == losses[True].dtype == torch.float32
+    assert torch.equal(losses[False], refined)
+    assert torch.equal(losses[True], 10 * (coarse + refined))
+
+
+def test_checkpoint_loads_without_the_backbone_weight_file(paper, tmp_path):
+    model, weights_path, _ = paper
+    ckpt = tmp_path / "paper.ckpt"
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "hyper_parameters": dict(model.hparams),
+            "pix2vox_preset": "paper",
+            "pytorch-lightning_version": L.__version__,
+        },
+        ckpt,
+    )
+    weights_path.unlink()  # another machine: the checkpoint travelled, the weight file did not
+    with pytest.raises(FileNotFoundError, match="resnet50.pth"):
+        Pix2VoxPlusPlus(preset="paper", backbone_weights=str(weights_path))  # building from the file needs it
+
+    loaded = Pix2VoxPlusPlus.load_from_checkpoint(ckpt)
+    assert loaded.hparams.backbone_weights == str(weights_path)  # kept for the record
+    own = model.state_dict()
+    assert all(torch.equal(v, own[k]) for k, v in loaded.state_dict().items())
+    assert all(p.requires_grad for p in loaded.parameters())
+    # A 0.1 checkpoint recorded freeze_backbone=None: its backbone stays frozen, as it was trained.
+    with pytest.warns(DeprecationWarning):
+        legacy = Pix2VoxPlusPlus.load_from_checkpoint(ckpt, freeze_backbone=None)
+    assert not any(p.requires_grad for p in legacy.encoder.backbone.parameters())
+
+
+# ---------------------------------------------------------------------- released checkpoints
+# Our names -> the released ones, written out from the reference model definitions.
+_RELEASED_TINY_BACKBONE = {f"backbone.{i}.": f"resnet.{i}." for i in (0, 1, 3, 4)}
+_RELEASED_RESNET = {"backbone.conv1.": "resnet.0.", "backbone.bn1.": "resnet.1.", "backbone.layer1.": "resnet.4."}
+_RELEASED_RESNET["backbone.layer2."] = "resnet.5."
+_RELEASED = {
+    "encoder": {"layer1.": "layer1.", "layer2.": "layer2.", "layer3.": "layer3."},
+    "decoder": {"layers.0.": "layer1.", "layers.1.": "layer2.", "layers.2.": "layer3.", "layers.3.": "layer4."},
+    "merger": {
+        **{f"context.{i}.": f"layer{i + 1}." for i in range(4)},
+        "score.0.": "layer5.",
+        "score.1.": "layer6.",
+    },
+    "refiner": {
+        "down1.": "layer1.",
+        "down2.": "layer2.",
+        "down3.": "layer3.",
+        "fc.0.": "layer4.0.",
+        "fc.2.": "layer5.0.",
+        "up1.": "layer6.",
+        "up2.": "layer7.",
+        "up3.": "layer8.",
+    },
+}
+
+
+def _released(model: Pix2VoxPlusPlus, backbone: dict[str, str]) -> dict[str, object]:
+    """``model``'s weights in the released layout, as DataParallel saved them, with the solver entries."""
+    out: dict[str, object] = {"epoch_idx": 250, "best_iou": np.float64(0.7128), "best_epoch": 231}
+    for part in ("encoder", "decoder", "merger", "refiner"):
+        table = {**backbone, **_RELEASED["encoder"]} if part == "encoder" else _RELEASED[part]
+        released = {}
+        for key, value in getattr(model, part).state_dict().items():
+            if part == "decoder" and key == "to_volume.weight":
+                released["module.layer5.0.weight"] = value.transpose(0, 1).clone()  # ConvTranspose3d(C, 1, 1)
+                continue
+            ours = next(p for p in table if key.startswith(p))
+            released["module." + table[ours] + key[len(ours) :]] = value.clone()
+        out[f"{part}_state_dict"] = released
+        out[f"{part}_solver_state_dict"] = {"state": {}, "param_groups": [{"lr": 1e-3, "params": [0, 1]}]}
+    return out
+
+
+def _perturbed_tiny(seed: int) -> Pix2VoxPlusPlus:
+    torch.manual_seed(seed)
+    model = Pix2VoxPlusPlus(preset="tiny")
+    with torch.no_grad():
+        for name, tensor in model.state_dict().items():
+            if tensor.is_floating_point():  # BatchNorm weights and statistics away from 1 / 0 too
+                tensor.copy_(torch.rand_like(tensor) + 0.1 if "running_var" in name else torch.randn_like(tensor))
+    return model.eval()
+
+
+def test_official_checkpoint_loads_into_the_tiny_preset(tmp_path):
+    source = _perturbed_tiny(seed=1)
+    path = tmp_path / "Pix2Vox++-A-ShapeNet.pth"
+    torch.save(_released(source, _RELEASED_TINY_BACKBONE), path)
+    loaded = Pix2VoxPlusPlus.from_official_checkpoint(path, preset="tiny", lr=5e-4).eval()
+    assert loaded.hparams.lr == 5e-4
+    own = source.state_dict()
+    assert all(torch.equal(v, own[k]) for k, v in loaded.state_dict().items())
+    images = torch.randn(2, 3, 3, 64, 64)
+    with torch.no_grad():
+        assert torch.equal(loaded.predict_voxels(images), source.predict_voxels(images))
+
+
+def test_official_checkpoint_maps_the_released_paper_names(paper):
+    model, weights_path, _ = paper
+    released = _released(model, _RELEASED_RESNET)
+    # Shapes from the reference definitions.
+    encoder, decoder = released["encoder_state_dict"], released["decoder_state_dict"]
+    assert encoder["module.resnet.5.3.bn3.weight"].shape == (512,)
+    assert encoder["module.layer1.0.weight"].shape == (512, 512, 3, 3)
+    assert decoder["module.layer1.0.weight"].shape == (1568, 512, 4, 4, 4)
+    assert decoder["module.layer5.0.weight"].shape == (8, 1, 1, 1, 1)
+    assert released["merger_state_dict"]["module.layer5.0.weight"].shape == (9, 36, 3, 3, 3)
+    assert released["refiner_state_dict"]["module.layer4.0.weight"].shape == (2048, 8192)
+    assert released["refiner_state_dict"]["module.layer8.0.weight"].shape == (32, 1, 4, 4, 4)
+    # No torchvision weights are read for a released checkpoint, even when named.
+    loaded = Pix2VoxPlusPlus.from_official_checkpoint(released, backbone_weights=str(weights_path) + ".absent")
+    own = model.state_dict()
+    assert loaded.preset == "paper"
+    assert all(torch.equal(v, own[k]) for k, v in loaded.state_dict().items())
+
+
+def test_official_checkpoint_errors_name_the_file_and_keys(tmp_path):
+    released = _released(_perturbed_tiny(seed=2), _RELEASED_TINY_BACKBONE)
+    path = tmp_path / "broken.pth"
+
+    torch.save({k: v for k, v in released.items() if k != "merger_state_dict"}, path)
+    with pytest.raises(
+        ValueError, match=r"broken.pth is not a released Pix2Vox\+\+ checkpoint.*missing \['merger_state_dict'\]"
+    ):
+        Pix2VoxPlusPlus.from_official_checkpoint(path, preset="tiny")
+
+    lightning_style = {"state_dict": {}, "hyper_parameters": {}}
+    with pytest.raises(ValueError, match=r"found keys \['hyper_parameters', 'state_dict'\]"):
+        Pix2VoxPlusPlus.from_official_checkpoint(lightning_style, preset="tiny")
+
+    refiner = dict(released["refiner_state_dict"])
+    del refiner["module.layer4.0.weight"]
+    refiner["module.layer9.0.weight"] = torch.zeros(1)
+    torch.save({**released, "refiner_state_dict": refiner}, path)
+    with pytest.raises(
+        ValueError, match=r"broken.pth: keys without a counterpart .*refiner_state_dict: module.layer9.0.weight"
+    ):
+        Pix2VoxPlusPlus.from_official_checkpoint(path, preset="tiny")
+    del refiner["module.layer9.0.weight"]
+    torch.save({**released, "refiner_state_dict": refiner}, path)
+    with pytest.raises(ValueError, match=r"broken.pth does not match .*missing keys \['refiner.fc.0.weight'\]"):
+        Pix2VoxPlusPlus.from_official_checkpoint(path, preset="tiny")
+
+    with pytest.raises(ValueError, match=r"shape mismatches \['encoder.layer1.0.weight: expected \(32, 32, 3, 3\)"):
+        Pix2VoxPlusPlus.from_official_checkpoint(
+            _released(_perturbed_tiny(seed=2), _RELEASED_TINY_BACKBONE)
+            | {
+                "encoder_state_dict": {
+                    **released["encoder_state_dict"],
+                    "module.layer1.0.weight": torch.zeros(32, 32, 1, 1),
+                }
+            },
+            preset="tiny",
+        )
+    with pytest.raises(FileNotFoundError, match="nope.pth"):
+        Pix2VoxPlusPlus.from_official_checkpoint(tmp_path / "nope.pth")

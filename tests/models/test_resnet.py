@@ -92,3 +92,15 @@ def test_conv1_bn1_value_and_output_shape():
     y[0, :, 1, 2] = -1.0
     torch.testing.assert_close(y, torch.full_like(y, -1.0))
     assert module(torch.zeros(2, 3, 224, 224)).shape == (2, 512, 28, 28)
+
+
+def test_loads_from_a_file_url_through_the_hub_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    state = _random_state(_torchvision_resnet50_shapes())
+    path = tmp_path / "served" / "resnet50.pth"
+    path.parent.mkdir()
+    torch.save(state, path)
+    module = ResNet50Stem()
+    load_torchvision_resnet50(module, path.as_uri(), progress=False)
+    assert (tmp_path / "home" / "hub" / "checkpoints" / "resnet50.pth").is_file()
+    torch.testing.assert_close(module.layer2[3].bn3.weight.detach(), state["layer2.3.bn3.weight"])
