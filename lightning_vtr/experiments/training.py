@@ -366,9 +366,26 @@ class _Marker(L.Callback):
         return self._generate_state_key(opening=self.opening)
 
 
-def make_model(config: ExperimentConfig) -> VoxelReconstructionModule:
-    """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``."""
-    return MODELS[check_choice("model", config.model, MODELS)](preset=config.preset, **config.model_kwargs)
+#: Model arguments that name pretrained weight files: a fine-tuning run takes every weight from the pretrained
+#: checkpoint instead, so it neither re-reads nor needs those files.
+_WEIGHT_ARGUMENTS = ("backbone_weights", "pretrained_encoder")
+
+
+def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelReconstructionModule:
+    """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``.
+
+    ``fine_tuning=True`` builds the model a pretrained checkpoint is loaded into: without the weight-file
+    arguments (the checkpoint holds those weights), and Pix2Vox++ with ``BCE(refined)`` only, as VTR fine-tunes
+    it (its paper preset pretrains with the two-stage loss), unless ``model_kwargs`` say otherwise.
+    """
+    model_class = MODELS[check_choice("model", config.model, MODELS)]
+    kwargs = dict(config.model_kwargs)
+    if fine_tuning:
+        for name in _WEIGHT_ARGUMENTS:
+            kwargs.pop(name, None)
+        if issubclass(model_class, Pix2VoxPlusPlus):
+            kwargs.setdefault("two_stage_loss", False)
+    return model_class(preset=config.preset, **kwargs)
 
 
 def make_datamodule(
@@ -564,7 +581,7 @@ def run_strategy(
             )
         return cached
     L.seed_everything(config.seed, workers=True, verbose=False)
-    model = make_model(config)
+    model = make_model(config, fine_tuning=True)
     model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
     dm = make_datamodule(config, model)
     if callback is None:

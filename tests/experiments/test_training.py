@@ -135,6 +135,27 @@ def test_models_registry_builds_each_model_class_with_its_preset():
         assert experiment.MODEL_CLASSES == ("pix2vox", "lrgt")
 
 
+def test_fine_tuning_model_takes_no_weight_files_and_bce_refined_unless_asked(monkeypatch):
+    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+    built = []
+
+    class Recording(Pix2VoxPlusPlus):
+        def __init__(self, preset, **kwargs):
+            built.append(kwargs)
+            super().__init__(preset=preset, **{k: v for k, v in kwargs.items() if k != "backbone_weights"})
+
+    monkeypatch.setitem(experiment.MODELS, "pix2vox", Recording)
+    config = ExperimentConfig(preset="tiny", model_kwargs={"backbone_weights": "/weights/resnet50.pth", "lr": 0.01})
+    experiment.make_model(config)
+    assert built[-1] == {"backbone_weights": "/weights/resnet50.pth", "lr": 0.01}  # pretraining reads the file
+    model = experiment.make_model(config, fine_tuning=True)
+    # the pretrained checkpoint holds the backbone; VTR fine-tunes with BCE(refined)
+    assert built[-1] == {"lr": 0.01, "two_stage_loss": False} and model.hparams.two_stage_loss is False
+    asked = ExperimentConfig(preset="tiny", model_kwargs={"two_stage_loss": True})
+    assert experiment.make_model(asked, fine_tuning=True).hparams.two_stage_loss is True
+
+
 def test_make_strategy_builds_every_registered_selector():
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.selection import SELECTORS
