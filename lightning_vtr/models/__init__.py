@@ -2,7 +2,7 @@
 
 Every model satisfies :class:`~lightning_vtr.protocol.ReconstructionModel`. ``Pix2VoxSpec`` and ``LRGTSpec``
 are the frozen architecture descriptions the presets hold (``PIX2VOX_PRESETS``, ``LRGT_PRESETS``) and each
-model's ``spec`` attribute.
+model's ``spec`` attribute. :func:`load_weights` reads pretrained weights from a path, a URL or ``"imagenet"``.
 """
 
 from lightning_vtr.models.base import VoxelReconstructionModule
@@ -10,9 +10,11 @@ from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
 from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
+from lightning_vtr.models.weights import IMAGENET_WEIGHTS, WeightsDownloadError, load_weights
 from lightning_vtr.protocol import VIEW_SETS
 
 __all__ = [
+    "IMAGENET_WEIGHTS",
     "LRGT",
     "LRGT_PRESETS",
     "PIX2VOX_PRESETS",
@@ -23,6 +25,8 @@ __all__ = [
     "Pix2VoxSpec",
     "ResNet50Stem",
     "VoxelReconstructionModule",
+    "WeightsDownloadError",
     "load_timm_deit",
     "load_torchvision_resnet50",
+    "load_weights",
 ]

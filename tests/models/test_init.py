@@ -34,5 +34,8 @@ def test_all_lists_exactly_the_public_names():
         "DistilledVisionTransformer",
         "load_timm_deit",
         "load_torchvision_resnet50",
+        "IMAGENET_WEIGHTS",
+        "WeightsDownloadError",
+        "load_weights",
     }
     assert set(m.__all__) <= set(dir(m))
