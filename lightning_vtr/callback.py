@@ -69,6 +69,11 @@ def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
     return out
 
 
+def _trainer_shows_progress(trainer: L.Trainer) -> bool:
+    bar = trainer.progress_bar_callback  # None with Trainer(enable_progress_bar=False)
+    return bar is not None and not getattr(bar, "is_disabled", False)
+
+
 def _broadcast(trainer: L.Trainer, obj: Any) -> Any:
     if trainer.world_size == 1 or not torch.distributed.is_available() or not torch.distributed.is_initialized():
         return obj
@@ -137,8 +142,13 @@ class ErrorGuidedViewAugmentation(L.Callback):
         batch_size: objects per prediction / synthesis call.
         source_view_set: which view set the objects' current views come from.
         seed: seeds every random choice the callback makes.
-        log_images: log a grid of new views when the logger takes images (TensorBoard).
-        progress_bar: show a progress bar while synthesizing (rank 0).
+        log_images: log a grid of new views and the error sheets of two of the objects given views (input
+            views, prediction, truth, error, error projection at the selected views) to every logger, through
+            :func:`lightning_vtr.utils.image_logging.log_image` (TensorBoard, W&B, MLflow, Comet; PNG files
+            under the run's log directory for the others). ``vtr/samples_generated``, ``vtr/samples_total`` and
+            ``vtr/mean_error`` are logged with ``pl_module.log`` (epoch-level) whatever this says.
+        progress_bar: show a progress bar while synthesizing (rank 0), when the Trainer shows one
+            (``Trainer(enable_progress_bar=False)`` hides it too).
 
     Raises:
         TypeError: an argument of the wrong type (e.g. a ``selector`` that is neither a ViewSelector nor a name).
@@ -453,7 +463,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         bar = tqdm(
             total=len(mine),
             desc=f"VTR: synthesizing views (epoch {epoch})",
-            disable=not self.progress_bar or rank != 0,
+            disable=not (self.progress_bar and rank == 0 and _trainer_shows_progress(trainer)),
             leave=False,
             dynamic_ncols=True,
         )
@@ -497,35 +507,77 @@ class ErrorGuidedViewAugmentation(L.Callback):
             "searched": len(searched),
         }
         self.history.append({k: record[k] for k in ("epoch", "mean_error")} | {"samples": len(samples)})
-        self._log(trainer, record, samples)
+        self._log(trainer, pl_module, record, samples)
 
     # ------------------------------------------------------------------ logging
-    def _log(self, trainer: L.Trainer, record: dict[str, Any], samples: list[GeneratedSample]) -> None:
-        # `trainer.log_dir` broadcasts under DDP: every rank must ask for it, before the rank-0 branch.
-        log_dir = trainer.log_dir or trainer.default_root_dir
-        if not trainer.is_global_zero:
-            return
+    def _log(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, record: dict[str, Any], samples: list[GeneratedSample]
+    ) -> None:
         total = len(trainer.datamodule.generated_samples)
         metrics = {
             "vtr/samples_generated": float(len(samples)),
             "vtr/samples_total": float(total),
             "vtr/mean_error": record["mean_error"],
         }
+        # Through `pl_module.log`, so every logger gets them and ModelCheckpoint / EarlyStopping can monitor them.
+        # Every rank logs (the samples are merged in a fixed order, so the values are equal on every rank);
+        # `sync_dist` averages equal values, which keeps them, and keeps Lightning from warning under DDP.
+        for name, value in metrics.items():
+            pl_module.log(name, value, on_step=False, on_epoch=True, sync_dist=True, batch_size=1)
+        # `trainer.log_dir` broadcasts under DDP: every rank must ask for it, before the rank-0 branch.
+        log_dir = trainer.log_dir or trainer.default_root_dir
+        if not trainer.is_global_zero:
+            return
         rank_zero_info(
             f"VTR {'before training' if record['epoch'] < 0 else 'epoch ' + str(record['epoch'])}: "
             f"{len(samples)} samples generated ({total} in total), "
             f"mean voxel error of searched objects {record['mean_error']:.4f}"
         )
-        for logger in trainer.loggers:
-            logger.log_metrics(metrics, step=trainer.global_step)
-            experiment = getattr(logger, "experiment", None)
-            if self.log_images and samples and hasattr(experiment, "add_image"):
-                experiment.add_image("vtr/new_views", _grid(samples[:8]), trainer.global_step, dataformats="HWC")
+        if self.log_images and samples and trainer.loggers:
+            from lightning_vtr.utils.image_logging import log_image
+
+            log_image(trainer, "vtr/new_views", _grid(samples[:8]), step=trainer.global_step)
+            sheets = self._error_sheets(trainer, pl_module, record)
+            log_image(trainer, "vtr/error_sheets", sheets, step=trainer.global_step)
         if log_dir:
             out = Path(log_dir) / "vtr_selection"
             out.mkdir(parents=True, exist_ok=True)
             name = "start" if record["epoch"] < 0 else f"epoch_{record['epoch']:04d}"
             (out / f"{name}.json").write_text(json.dumps(record, indent=1))
+
+    @torch.no_grad()
+    def _error_sheets(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, record: dict[str, Any], count: int = 2
+    ) -> np.ndarray:
+        """Sheets (views | prediction | truth | error | error projection at the selected views) of the first
+        ``count`` objects given new views, predicted again by the current model (rank 0 only, a few objects)."""
+        from lightning_vtr.visualize import object_sheet, stack_sheets
+
+        dm = trainer.datamodule
+        seed = record["epoch"] + 1  # the views the selection predicted from
+        records = [dm.record(*name.split("/", 1)) for name in record["objects"][:count]]
+        items = [dm.eval_item(rec, self.source_view_set, seed=seed) for rec in records]
+        was_training = pl_module.training
+        pl_module.eval()
+        try:
+            predicted = self._predict(pl_module, [item["images"] for item in items])
+        finally:
+            pl_module.train(was_training)
+        normalize = getattr(dm.transform, "normalize", "auto")
+        sheets = [
+            object_sheet(
+                predicted[i],
+                item["voxels"],
+                item["images"],
+                input_viewpoints=item["viewpoints"],
+                selected_viewpoints=record["selected"][i],
+                panel_size=96,
+                normalize=normalize,
+                title=f"{record['objects'][i]} (epoch {record['epoch']}): views selected for it",
+            )
+            for i, item in enumerate(items)
+        ]
+        return stack_sheets(sheets)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:

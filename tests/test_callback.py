@@ -281,3 +281,57 @@ def test_callback_rejects_a_search_fraction_below_fraction():
         ErrorGuidedViewAugmentation(fraction=0.2, search_fraction=0.1)
     with pytest.raises(ValueError, match="`generate_for` must be one of 'random', 'error', got 'worst'"):
         ErrorGuidedViewAugmentation(generate_for="worst")
+
+
+# ---------------------------------------------------------------------------------------- logging, progress bar
+def test_vtr_values_go_through_pl_module_log_and_images_to_the_logger(tiny_dataset, tmp_path, monkeypatch):
+    import csv
+
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
+
+    import lightning_vtr.callback as callback_module
+
+    bars = []
+    real_tqdm = callback_module.tqdm
+    monkeypatch.setattr(callback_module, "tqdm", lambda *a, **k: bars.append(k["disable"]) or real_tqdm(*a, **k))
+    dm = make_datamodule(tiny_dataset, tmp_path)
+    callback = make_callback(fraction=0.2, progress_bar=True)  # the Trainer's setting wins: no bar
+    # a checkpoint monitoring a vtr/* value works only if it reaches trainer.callback_metrics
+    best = ModelCheckpoint(dirpath=tmp_path / "ckpt", monitor="vtr/samples_total", mode="max", save_top_k=1)
+    trainer = L.Trainer(
+        max_epochs=2,
+        accelerator="cpu",
+        callbacks=[callback, best],
+        default_root_dir=str(tmp_path),
+        logger=CSVLogger(tmp_path, name="", version=""),
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_train_batches=2,
+        limit_val_batches=1,
+        reload_dataloaders_every_n_epochs=1,
+    )
+    trainer.fit(EmptyPredictionModel(), datamodule=dm)
+
+    assert bars and not any(b is False for b in bars)  # every synthesis bar disabled
+    # 4 samples before epoch 0 and 4 after it: logged at epoch level through pl_module.log
+    assert trainer.callback_metrics["vtr/samples_total"].item() == 8.0
+    assert trainer.callback_metrics["vtr/samples_generated"].item() == 4.0
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    totals = [float(r["vtr/samples_total"]) for r in rows if r.get("vtr/samples_total")]
+    assert totals == [8.0]  # epoch 0's row (epoch 1, the last, generates nothing)
+    assert best.best_model_score.item() == 8.0
+    # the pictures reach the CSV logger as PNG files: the grid of new views (4 samples x 3 views of 32 px) and the
+    # error sheets of two of the objects given views
+    grids = sorted((tmp_path / "images" / "vtr" / "new_views").glob("step_*.png"))
+    assert len(grids) == 2 and np.asarray(Image.open(grids[0])).shape == (4 * 32, 3 * 32, 3)
+    sheets = sorted((tmp_path / "images" / "vtr" / "error_sheets").glob("step_*.png"))
+    assert len(sheets) == 2 and np.asarray(Image.open(sheets[0])).shape[0] > 2 * 5 * 96
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_the_synthesis_bar_follows_the_trainers_progress_bar(enabled):
+    from lightning_vtr.callback import _trainer_shows_progress
+
+    trainer = L.Trainer(enable_progress_bar=enabled, logger=False)
+    assert _trainer_shows_progress(trainer) is enabled

@@ -3,28 +3,46 @@
 Each sub-command is a module of this package with a ``HELP`` line, ``add_arguments(parser)`` and
 ``run(args) -> exit status``, registered in :data:`COMMANDS`; adding a command is adding a module and one
 entry. ``fit`` / ``validate`` / ``test`` go to Lightning's ``LightningCLI``
-(:mod:`lightning_vtr.cli.lightning`). Errors a user can fix (a bad path, ``--shard 3/2``) print one line to
+(:mod:`lightning_vtr.cli.lightning`); ``predict`` is the package's command (:mod:`lightning_vtr.cli.predict`)
+unless its words use LightningCLI's options (``--config``, ``--ckpt_path``, ``--trainer.*``, ...), then it goes
+to LightningCLI too. Errors a user can fix (a bad path, ``--shard 3/2``) print one line to
 stderr and exit with status 2; argparse's own usage errors exit with 2 as well.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import shlex
 import sys
 from collections.abc import Callable, Sequence
 
-from lightning_vtr.cli import build_dataset, dataset_info, report
+from lightning_vtr.cli import build_dataset, dataset_info, predict, report
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "goes_to_lightning", "main"]
 
 #: name -> (help, add_arguments(parser), run(args) -> exit status).
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "build-dataset": (build_dataset.HELP, build_dataset.add_arguments, build_dataset.run),
     "dataset-info": (dataset_info.HELP, dataset_info.add_arguments, dataset_info.run),
     "report": (report.HELP, report.add_arguments, report.run),
+    "predict": (predict.HELP, predict.add_arguments, predict.run),
 }
+#: A word that only a LightningCLI command line has: a config, its own options, or a dotted class argument.
+_LIGHTNING_WORD = re.compile(
+    r"^(-c$|--(config|print_config|ckpt_path|seed_everything|return_predictions|optimizer|lr_scheduler)([=.]|$)"
+    r"|--(trainer|model|data)\.)"
+)
+
+
+def goes_to_lightning(words: Sequence[str]) -> bool:
+    """Whether ``lightning-vtr <words>`` is a LightningCLI command line: ``fit`` / ``validate`` / ``test``
+    always; a sub-command that is also the package's own (``predict``) when a word is LightningCLI's
+    (``--config``, ``--print_config``, ``--ckpt_path``, ``--trainer.*``, ``--model.*``, ``--data.*``, ...)."""
+    if not words or words[0] not in LIGHTNING_SUBCOMMANDS:
+        return False
+    return words[0] not in COMMANDS or any(_LIGHTNING_WORD.match(word) for word in words[1:])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.epilog = (
         f"Training and testing: `lightning-vtr {'|'.join(LIGHTNING_SUBCOMMANDS)} --config CONFIG.yaml` "
-        "(LightningCLI; --help there)."
+        "(LightningCLI; --help there). `lightning-vtr predict --ckpt CKPT ...` is the package's own command."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (help_text, add_arguments, run) in COMMANDS.items():
@@ -47,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lightning-vtr`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     words = list(sys.argv[1:] if argv is None else argv)
-    if words and words[0] in LIGHTNING_SUBCOMMANDS:
+    if goes_to_lightning(words):
         return run_lightning_cli(None if argv is None else words)
     args = build_parser().parse_args(words)
     args.command_line = shlex.join(["lightning-vtr", *words])  # shown in reports

@@ -298,6 +298,10 @@ class VTRDataModule(L.LightningDataModule):
     def test_dataloader(self) -> list[DataLoader]:
         return [self._loader(self._dataset("test", name, train=False), shuffle=False) for name in self.test_view_sets]
 
+    def predict_dataloader(self) -> list[DataLoader]:
+        """The test split of every view set in ``test_view_sets`` (``Trainer.predict``, ``lightning-vtr predict``)."""
+        return self.test_dataloader()
+
     # ------------------------------------------------------------------ what the callback uses
     def object_views(
         self, record: ObjectRecord, view_set: str = "aligned", indices: Sequence[int] | None = None

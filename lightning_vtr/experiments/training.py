@@ -20,6 +20,7 @@ import lightning as L
 import torch
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
+from lightning_vtr.data import IMAGE_RECIPES
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.experiments.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
@@ -175,6 +176,10 @@ class ExperimentConfig:
         accelerator, devices, precision: passed to the Trainer; ``devices`` given as a string of digits
             (from a command line) becomes an int.
         out: where runs are written.
+        recipe: the training images' recipe (``VTRDataModule(recipe=...)``): ``"plain"`` (composite on white,
+            ImageNet normalisation; the default, as in 0.1), ``"reference"`` (the model's published recipe, its
+            class's ``image_recipe``: ``"pix2vox"`` or ``"lrgt"``) or a name of
+            :data:`~lightning_vtr.data.IMAGE_RECIPES`.
         test_repeats: view sets per test object, each a fixed choice of the model's ``num_views`` views of the
             tested view set (``VTRDataModule(test_repeats=...)``); the same for every strategy of a seed, so
             differences between strategies are paired. More repeats cut the variance of a test mean cheaply.
@@ -203,6 +208,7 @@ class ExperimentConfig:
     precision: str = "32-true"
     finetune_lr: str = "cosine"
     test_repeats: int = 1
+    recipe: str = "plain"
     out: str = "runs/vtr"
     embedded: dict[str, Any] = field(default_factory=dict)
     model_kwargs: dict[str, Any] = field(default_factory=dict)
@@ -210,6 +216,7 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         check_choice("finetune_lr", self.finetune_lr, FINETUNE_LR_SCHEDULES)
+        check_choice("recipe", self.recipe, ("reference", *IMAGE_RECIPES))
         check_int("test_repeats", self.test_repeats, minimum=1)
         if isinstance(self.devices, str) and self.devices.isdigit():
             self.devices = int(self.devices)
@@ -409,6 +416,7 @@ def make_datamodule(
         seed=config.seed,
         test_repeats=config.test_repeats,
         embedded=config.embedded,
+        recipe=type(model).image_recipe if config.recipe == "reference" else config.recipe,
     )
 
 
@@ -573,6 +581,8 @@ def run_strategy(
         # A cache is only a result of *this* configuration: refuse one written under another. Where the
         # run lives and what hardware it used do not change what it measures.
         current, saved = _comparable(config), cached.get("config", {})
+        # a field added in a later version, absent from an older cache, measured its default
+        saved = {**{k: v for k, v in _comparable(ExperimentConfig()).items() if k not in saved}, **saved}
         changed = sorted(k for k in (current.keys() | saved.keys()) - _PLACEMENT if current.get(k) != saved.get(k))
         if changed:
             raise ValueError(

@@ -42,7 +42,7 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, ClassVar
 
 import lightning as L
 import torch
@@ -83,11 +83,18 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         categories: category vocabulary for per-category test metrics; ``None`` takes
             ``trainer.datamodule.categories`` at setup when it exists, else grows as names are seen
             (fine on one process; under DDP give it explicitly).
+        log_sheets: objects of the first validation batch whose sheets (input views | prediction | ground
+            truth | error | error projection, :func:`lightning_vtr.visualize.log_validation_sheets`) are logged
+            every validation epoch, to any logger (PNG files for CSV); 0 (the default) logs none.
 
     Raises:
         TypeError: if a size is not an int.
         ValueError: if a size is not positive.
     """
+
+    #: The model's published training-image recipe, a name of :data:`lightning_vtr.data.IMAGE_RECIPES`
+    #: (``VTRDataModule(recipe=type(model).image_recipe)``; ``ExperimentConfig(recipe="reference")``).
+    image_recipe: ClassVar[str] = "plain"
 
     def __init__(
         self,
@@ -100,6 +107,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         fscore_points: int = 8192,
         validation_fscore: bool = True,
         categories: Sequence[str] | None = None,
+        log_sheets: int = 0,
     ) -> None:
         super().__init__()
         self.image_size = check_int("image_size", image_size, minimum=1)
@@ -107,6 +115,8 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         self.voxel_resolution = check_int("voxel_resolution", voxel_resolution, minimum=1)
         self.iou_thresholds = tuple(float(t) for t in iou_thresholds)
         self.validation_fscore = validation_fscore
+        self.log_sheets = check_int("log_sheets", log_sheets, minimum=0)
+        self._sheet_batch: tuple[dict[str, Any], Tensor] | None = None
         cats = list(categories) if categories is not None else None
 
         def metrics() -> nn.ModuleDict:
@@ -231,12 +241,19 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         outputs = self(images)
         self.log("val/loss", self.loss(outputs, voxels), batch_size=images.shape[0], add_dataloader_idx=False)
         probs = outputs["voxels"].detach()
+        if self.log_sheets and batch_idx == 0 and dataloader_idx == 0:
+            self._sheet_batch = (batch, probs)
         self.val_metrics["iou"].update(probs, voxels, batch.get("category"))
         if self.validation_fscore:
             self.val_metrics["fscore"].update(probs, voxels, batch.get("category"))
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics(self.val_metrics, "val", per_category=False)
+        if self._sheet_batch is not None:
+            from lightning_vtr.visualize import log_validation_sheets  # rendering stack only when asked
+
+            log_validation_sheets(self, *self._sheet_batch, max_objects=self.log_sheets)
+            self._sheet_batch = None
 
     def test_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> None:
         images, voxels = self._batch(batch)

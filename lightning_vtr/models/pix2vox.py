@@ -14,7 +14,7 @@ import pickle
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -389,7 +389,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s,
             see :func:`reference_init_`), ``"torch"`` (PyTorch's defaults) or ``None``: the preset's
             (``paper``: ``"reference"``, ``tiny``: ``"torch"``).
-        iou_thresholds, fscore_threshold, fscore_points, validation_fscore, categories: see
+        iou_thresholds, fscore_threshold, fscore_points, validation_fscore, categories, log_sheets: see
             :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
 
     Raises:
@@ -402,6 +402,8 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         >>> model.predict_voxels(torch.zeros(2, 5, 3, 64, 64)).shape
         torch.Size([2, 32, 32, 32])
     """
+
+    image_recipe: ClassVar[str] = "pix2vox"
 
     def __init__(
         self,
@@ -420,6 +422,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         fscore_threshold: float = 0.4,
         fscore_points: int = 8192,
         validation_fscore: bool = True,
+        log_sheets: int = 0,
         categories: tuple[str, ...] | None = None,
     ) -> None:
         # 1. resolve the preset's defaults first: save_hyperparameters() records the values in effect
@@ -453,6 +456,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
             fscore_points=fscore_points,
             validation_fscore=validation_fscore,
             categories=categories,
+            log_sheets=log_sheets,
         )
         self.save_hyperparameters()
         self.preset = preset

@@ -1,4 +1,4 @@
-"""A DeiT-style (distilled) Vision Transformer in plain torch, loadable from timm checkpoints.
+"""A DeiT-style (distilled) Vision Transformer and its transformer layers in plain torch, loadable from timm checkpoints.
 
 timm has no usable CPU build here, so LRGT's encoder is written out by hand. Module and
 parameter names match timm's ``deit_base_distilled_patch16_224`` (``patch_embed.proj``,
@@ -9,7 +9,8 @@ only use the token features.
 
 Every block takes ``num_views`` next to its tokens. A plain :class:`Attention` ignores it;
 LRGT swaps some blocks' attention for one that groups tokens across the views of a sample,
-keeping the ``qkv``/``proj`` names so pretrained weights still land in them.
+keeping the ``qkv``/``proj`` names so pretrained weights still land in them. LRGT's merger and
+decoder reuse :class:`Attention`, :class:`CrossAttention`, :class:`Mlp` and :class:`Block`.
 """
 
 from __future__ import annotations
@@ -24,7 +25,15 @@ from torch import Tensor, nn
 
 from lightning_vtr.utils.validation import check_int
 
-__all__ = ["Attention", "Block", "DistilledVisionTransformer", "Mlp", "PatchEmbed", "load_timm_deit"]
+__all__ = [
+    "Attention",
+    "Block",
+    "CrossAttention",
+    "DistilledVisionTransformer",
+    "Mlp",
+    "PatchEmbed",
+    "load_timm_deit",
+]
 
 # timm keys that belong to the classifier, which we never build.
 _HEAD_PREFIXES = ("head.", "head_dist.", "fc_norm.")
@@ -81,6 +90,42 @@ class Attention(nn.Module):
         return self.proj(self.merge_heads(F.scaled_dot_product_attention(q, k, v)))
 
 
+class CrossAttention(nn.Module):
+    """Multi-head attention of queries ``(N, Q, D)`` to a memory ``(N, T, D)``, with an optional logit bias.
+
+    ``softmax(q k^T / sqrt(head_dim) + logit_bias) v`` per head, then the output projection. The
+    queries come from ``q``, the keys and values from ``kv`` (one linear, keys first).
+
+    Args:
+        dim: token width ``D`` of queries and memory.
+        num_heads: attention heads; must divide ``dim``.
+        qkv_bias: whether ``q`` and ``kv`` have biases (LRGT's merger and decoder have none).
+    """
+
+    def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True) -> None:
+        super().__init__()
+        check_int("dim", dim, minimum=1)
+        check_int("num_heads", num_heads, minimum=1)
+        if dim % num_heads != 0:
+            raise ValueError(f"`dim` must be divisible by `num_heads` {num_heads}, got {dim}")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.q = nn.Linear(dim, dim, bias=qkv_bias)
+        self.kv = nn.Linear(dim, 2 * dim, bias=qkv_bias)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, x: Tensor, memory: Tensor, logit_bias: Tensor | None = None) -> Tensor:
+        """``(N, Q, D)`` queries attend to ``(N, T, D)``; ``logit_bias`` broadcasts to ``(N, heads, Q, T)``."""
+        n, nq, _ = x.shape
+        h, d = self.num_heads, self.head_dim
+        q = self.q(x).reshape(n, nq, h, d).transpose(1, 2)
+        k, v = self.kv(memory).reshape(n, memory.shape[1], 2, h, d).permute(2, 0, 3, 1, 4)
+        if logit_bias is not None:
+            logit_bias = logit_bias.to(q.dtype).expand(n, h, nq, memory.shape[1])
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=logit_bias)
+        return self.proj(Attention.merge_heads(out))
+
+
 class Mlp(nn.Module):
     """Two-layer GELU MLP, ``(..., D) -> (..., D)``."""
 
@@ -95,14 +140,19 @@ class Mlp(nn.Module):
 
 
 class Block(nn.Module):
-    """Pre-norm transformer block. ``x`` is ``(B * V, T, D)``, views of a sample contiguous."""
+    """Pre-norm transformer block. ``x`` is ``(B * V, T, D)``, views of a sample contiguous.
 
-    def __init__(self, dim: int, num_heads: int, mlp_ratio: float = 4.0, qkv_bias: bool = True) -> None:
+    ``norm_eps`` defaults to 1e-6, what DeiT was trained with (the torch default 1e-5 shifts
+    pretrained features); LRGT's decoder blocks use 1e-5.
+    """
+
+    def __init__(
+        self, dim: int, num_heads: int, mlp_ratio: float = 4.0, qkv_bias: bool = True, norm_eps: float = 1e-6
+    ) -> None:
         super().__init__()
-        # eps 1e-6 is what DeiT was trained with; the torch default (1e-5) shifts pretrained features.
-        self.norm1 = nn.LayerNorm(dim, eps=1e-6)
+        self.norm1 = nn.LayerNorm(dim, eps=norm_eps)
         self.attn: Attention = Attention(dim, num_heads, qkv_bias)
-        self.norm2 = nn.LayerNorm(dim, eps=1e-6)
+        self.norm2 = nn.LayerNorm(dim, eps=norm_eps)
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
 
     def forward(self, x: Tensor, num_views: int = 1) -> Tensor:
@@ -111,10 +161,16 @@ class Block(nn.Module):
 
 
 class DistilledVisionTransformer(nn.Module):
-    """DeiT (distilled) ViT trunk: images ``(N, 3, H, W)`` to normalised tokens ``(N, 2 + P, D)``.
+    """DeiT (distilled) ViT trunk: images ``(N, 3, H, W)`` to normalised tokens ``(N, 2 + P, D)`` or ``(N, P, D)``.
 
     Token order is ``[cls, dist, patch_0, ..., patch_{P-1}]`` with patches row-major over the
     ``grid_size x grid_size`` patch grid (``P = grid_size^2``), as in timm.
+
+    With ``use_prefix_tokens=False`` (LRGT's encoder) the class and distillation tokens are dropped
+    at the input: the blocks see only the ``P`` patch tokens plus ``pos_embed[:, 2:]``. The
+    ``cls_token``, ``dist_token`` and the prefix rows of ``pos_embed`` then stay in the state dict,
+    so a timm checkpoint still loads key for key, but take no part in the forward; the two tokens
+    are frozen (``requires_grad=False``) so distributed training does not find unused parameters.
 
     Args:
         image_size: square input size in pixels; ``pos_embed`` is built for it.
@@ -124,10 +180,12 @@ class DistilledVisionTransformer(nn.Module):
         num_heads: attention heads per block.
         mlp_ratio: MLP hidden width as a multiple of ``D``.
         in_chans: input channels.
+        use_prefix_tokens: whether the cls/dist tokens enter the blocks (timm's DeiT) or not (LRGT).
 
     The defaults are DeiT-B (86 M parameters without the heads).
     """
 
+    #: cls and dist: the rows of ``pos_embed`` (and of a timm checkpoint) before the patch grid.
     num_prefix_tokens = 2
 
     def __init__(
@@ -139,18 +197,29 @@ class DistilledVisionTransformer(nn.Module):
         num_heads: int = 12,
         mlp_ratio: float = 4.0,
         in_chans: int = 3,
+        use_prefix_tokens: bool = True,
     ) -> None:
         super().__init__()
+        if not isinstance(use_prefix_tokens, bool):
+            raise TypeError(
+                f"`use_prefix_tokens` must be a bool, got {type(use_prefix_tokens).__name__} {use_prefix_tokens!r}"
+            )
         self.embed_dim = embed_dim
+        self.use_prefix_tokens = use_prefix_tokens
         self.patch_embed = PatchEmbed(image_size, patch_size, in_chans, embed_dim)
         self.grid_size = self.patch_embed.grid_size
         num_patches = self.grid_size**2
-        self.cls_token = nn.Parameter(torch.zeros(1, 1, embed_dim))
-        self.dist_token = nn.Parameter(torch.zeros(1, 1, embed_dim))
+        self.cls_token = nn.Parameter(torch.zeros(1, 1, embed_dim), requires_grad=use_prefix_tokens)
+        self.dist_token = nn.Parameter(torch.zeros(1, 1, embed_dim), requires_grad=use_prefix_tokens)
         self.pos_embed = nn.Parameter(torch.zeros(1, num_patches + self.num_prefix_tokens, embed_dim))
         self.blocks = nn.ModuleList(Block(embed_dim, num_heads, mlp_ratio) for _ in range(depth))
         self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
         self.reset_parameters()
+
+    @property
+    def num_output_prefix_tokens(self) -> int:
+        """Prefix tokens before the patches in the output: 2 (cls, dist), or 0 without prefix tokens."""
+        return self.num_prefix_tokens if self.use_prefix_tokens else 0
 
     def reset_parameters(self) -> None:
         """timm's DeiT initialisation: truncated normal (std 0.02) for tokens and linears."""
@@ -166,14 +235,19 @@ class DistilledVisionTransformer(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def embed(self, images: Tensor) -> Tensor:
-        """Patch tokens plus prefix tokens plus position embedding: ``(N, 3, H, W) -> (N, 2 + P, D)``."""
+        """Patch tokens (after the prefix tokens, if used) plus position embedding.
+
+        ``(N, 3, H, W) -> (N, 2 + P, D)``, or ``(N, P, D)`` with ``use_prefix_tokens=False``.
+        """
         x = self.patch_embed(images)
+        if not self.use_prefix_tokens:
+            return x + self.pos_embed[:, self.num_prefix_tokens :]
         n = x.shape[0]
         prefix = torch.cat([self.cls_token.expand(n, -1, -1), self.dist_token.expand(n, -1, -1)], dim=1)
         return torch.cat([prefix, x], dim=1) + self.pos_embed
 
     def forward(self, images: Tensor, num_views: int = 1) -> Tensor:
-        """Tokens ``(N, 2 + P, D)`` for images ``(N, 3, H, W)``.
+        """Tokens ``(N, 2 + P, D)`` (or ``(N, P, D)`` without prefix tokens) for images ``(N, 3, H, W)``.
 
         ``num_views`` tells the blocks that ``N = B * num_views`` with each sample's views
         contiguous; plain attention blocks ignore it.

@@ -27,7 +27,7 @@ def test_the_package_exports_the_dispatcher():
 
 
 def test_every_registered_command_has_a_sub_parser_and_a_help_line(capsys):
-    assert list(COMMANDS) == ["build-dataset", "dataset-info", "report"]
+    assert list(COMMANDS) == ["build-dataset", "dataset-info", "report", "predict"]
     assert list(_subcommands(build_parser())) == list(COMMANDS)
     with pytest.raises(SystemExit) as exit_info:
         main(["--help"])
@@ -51,8 +51,8 @@ def test_lightning_subcommands_go_to_lightning_cli_with_every_word(monkeypatch, 
 
 def test_an_unknown_command_is_a_usage_error(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        main(["predict"])
-    assert exit_info.value.code == 2 and "invalid choice: 'predict'" in capsys.readouterr().err
+        main(["export"])
+    assert exit_info.value.code == 2 and "invalid choice: 'export'" in capsys.readouterr().err
 
 
 def test_an_error_the_user_can_fix_prints_one_line_and_returns_2(monkeypatch, capsys):

@@ -119,6 +119,12 @@ def test_run_strategy_refuses_a_cached_result_of_another_configuration(tmp_path)
     assert run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, devices=2), missing) == payload
     with pytest.raises(ValueError, match=r"results.json was written with another configuration .*'finetune_lr'"):
         run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, finetune_lr="constant"), missing)
+    # A cache written before a field existed measured that field's default: still the answer, not otherwise.
+    older = {**payload, "config": {k: v for k, v in payload["config"].items() if k != "recipe"}}
+    (tmp_path / "none" / "results.json").write_text(json.dumps(older))
+    assert run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3), missing) == older
+    with pytest.raises(ValueError, match=r"another configuration .*'recipe'"):
+        run_strategy("none", ExperimentConfig(out=str(tmp_path), finetune_epochs=3, recipe="pix2vox"), missing)
 
 
 def test_models_registry_builds_each_model_class_with_its_preset():
@@ -156,6 +162,19 @@ def test_fine_tuning_model_takes_no_weight_files_and_bce_refined_unless_asked(mo
     assert experiment.make_model(asked, fine_tuning=True).hparams.two_stage_loss is True
 
 
+def test_recipe_reference_takes_the_models_published_recipe():
+    from lightning_vtr.data import IMAGE_RECIPES
+    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+    model = Pix2VoxPlusPlus(preset="tiny")
+    assert Pix2VoxPlusPlus.image_recipe == "pix2vox"
+    dm = experiment.make_datamodule(ExperimentConfig(recipe="reference"), model)
+    assert dm.recipe == IMAGE_RECIPES["pix2vox"]
+    assert experiment.make_datamodule(ExperimentConfig(), model).recipe == IMAGE_RECIPES["plain"]
+    with pytest.raises(ValueError, match="`recipe` must be one of 'reference', 'plain'"):
+        ExperimentConfig(recipe="imagenet")
+
+
 def test_make_strategy_builds_every_registered_selector():
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.selection import SELECTORS
@@ -167,7 +186,7 @@ def test_make_strategy_builds_every_registered_selector():
         callback = experiment.make_strategy(name, config)
         assert isinstance(callback, ErrorGuidedViewAugmentation) and type(callback.selector) is cls, name
         assert (callback.fraction, callback.seed) == (0.2, 3)
-    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*'visible_nms_search', got 'ours'"):
+    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*'visible_tau_search', got 'ours'"):
         experiment.make_strategy("ours", config)
 
 

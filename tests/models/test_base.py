@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import lightning as L
+import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
@@ -118,3 +119,26 @@ def test_load_from_checkpoint_builds_the_model_while_restoring(tmp_path):
     assert loaded.built_while_restoring and loaded.w.item() == 2.5
     assert not is_restoring_checkpoint()  # the flag ends with the call
     assert not _PassThrough().built_while_restoring
+
+
+def test_log_sheets_logs_the_first_validation_objects_sheets_as_png_for_a_csv_logger(tmp_path):
+    from PIL import Image
+
+    batches = [_batch([2, 4, 3], ["aligned"] * 3, ["a", "a", "b"]), _batch([1], ["aligned"], ["a"])]
+    with pytest.raises(ValueError, match="`log_sheets` must be"):
+        _PassThrough(log_sheets=-1)
+
+    def validate(log_sheets: int, root):
+        logger = L.pytorch.loggers.CSVLogger(str(root), name="", version="")
+        trainer = L.Trainer(logger=logger, enable_progress_bar=False, enable_model_summary=False)
+        model = _PassThrough(log_sheets=log_sheets, validation_fscore=False)
+        trainer.validate(model, DataLoader(batches, batch_size=None), verbose=False)
+        assert model._sheet_batch is None  # released after logging
+        return sorted((root / "images").rglob("*.png")) if (root / "images").exists() else []
+
+    assert validate(0, tmp_path / "off") == []  # off by default
+    one, two = validate(1, tmp_path / "one"), validate(2, tmp_path / "two")
+    assert len(one) == len(two) == 1 and two[0].parent.name == "sheets"
+    one, two = np.asarray(Image.open(one[0])), np.asarray(Image.open(two[0]))
+    # one sheet row per object, the same panels side by side
+    assert two.shape[1] == one.shape[1] and two.shape[0] > 1.8 * one.shape[0]

@@ -1,4 +1,7 @@
-"""Tests for LRGT: grouping attention, token merger, decoder, Dice loss and the LightningModule."""
+"""Tests for LRGT: grouping attention, the encoder's dropped prefix tokens, Dice loss, the network and LightningModule.
+
+The merger and the decoder have their own files (``test_lrgt_merger.py``, ``test_lrgt_decoder.py``).
+"""
 
 from __future__ import annotations
 
@@ -15,11 +18,19 @@ from lightning_vtr.models.lrgt import (
     LongRangeGroupingAttention,
     LRGTNetwork,
     LRGTSpec,
-    SimilarTokenMerger,
     dice_loss,
 )
 
-DIM, HEADS, GRID, STRIDE, PREFIX = 8, 2, 4, 2, 2
+DIM, HEADS, GRID, STRIDE = 8, 2, 4, 2
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Run single-threaded: on 2 shared cores, 2 threads per process oversubscribe badly (10x slower)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def _attend(attn: LongRangeGroupingAttention, tokens: torch.Tensor) -> torch.Tensor:
@@ -39,15 +50,10 @@ def _reference_grouping_attention(attn: LongRangeGroupingAttention, x: torch.Ten
     out = torch.zeros_like(x)
     for b in range(bv // views):
         rows = range(b * views, (b + 1) * views)
-        # prefix tokens of all views form one group
-        members = [(r, p) for r in rows for p in range(PREFIX)]
-        res = _attend(attn, torch.stack([x[r, p] for r, p in members]))
-        for n, (r, p) in enumerate(members):
-            out[r, p] = res[n]
         for a in range(STRIDE):
             for c in range(STRIDE):
                 members = [
-                    (r, PREFIX + row * GRID + col)
+                    (r, row * GRID + col)
                     for r in rows
                     for row in range(GRID)
                     for col in range(GRID)
@@ -67,8 +73,8 @@ def _reference_grouping_attention(attn: LongRangeGroupingAttention, x: torch.Ten
                     for dc in (-1, 0, 1):
                         rr, cc = row + dr, col + dc
                         if 0 <= rr < GRID and 0 <= cc < GRID:
-                            s = s + w[:, dr + 1, dc + 1] * values[r, PREFIX + rr * GRID + cc]
-                out[r, PREFIX + row * GRID + col] += s
+                            s = s + w[:, dr + 1, dc + 1] * values[r, rr * GRID + cc]
+                out[r, row * GRID + col] += s
     return attn.proj(out)
 
 
@@ -84,7 +90,7 @@ def _random_grouping_attention() -> LongRangeGroupingAttention:
 @pytest.mark.parametrize("views", [1, 3])
 def test_grouping_attention_equals_loop_reference(views):
     attn = _random_grouping_attention()
-    x = torch.randn(2 * views, PREFIX + GRID * GRID, DIM)
+    x = torch.randn(2 * views, GRID * GRID, DIM)
     with torch.no_grad():
         expected = _reference_grouping_attention(attn, x, views)
         actual = attn(x, num_views=views)
@@ -93,7 +99,7 @@ def test_grouping_attention_equals_loop_reference(views):
 
 def test_grouping_attention_one_view_is_per_view_and_views_do_mix_otherwise():
     attn = _random_grouping_attention()
-    x = torch.randn(3, PREFIX + GRID * GRID, DIM)
+    x = torch.randn(3, GRID * GRID, DIM)
     with torch.no_grad():
         alone = torch.cat([attn(x[i : i + 1], num_views=1) for i in range(3)])
         # Three separate 1-view samples equal one batch of three 1-view samples ...
@@ -105,19 +111,21 @@ def test_grouping_attention_one_view_is_per_view_and_views_do_mix_otherwise():
         # 3x3 neighbours (0,0), (0,2), (2,0), (2,2) -- so zero the signature to isolate groups.
         torch.nn.init.zeros_(attn.signature.weight)
         y = x[:1].clone()
-        y[0, PREFIX + 1 * GRID + 1] += 5.0
+        y[0, 1 * GRID + 1] += 5.0
         before, after = attn(x[:1], 1), attn(y, 1)
-        group00 = [PREFIX + r * GRID + c for r in (0, 2) for c in (0, 2)]
+        group00 = [r * GRID + c for r in (0, 2) for c in (0, 2)]
         assert torch.allclose(before[0, group00], after[0, group00], atol=1e-6)
-        assert not torch.allclose(before[0, PREFIX + 1 * GRID + 3], after[0, PREFIX + 1 * GRID + 3], atol=1e-3)
+        assert not torch.allclose(before[0, 1 * GRID + 3], after[0, 1 * GRID + 3], atol=1e-3)
 
 
 def test_grouping_attention_rejects_bad_stride_and_shapes():
     with pytest.raises(ValueError, match="group_stride"):
         LongRangeGroupingAttention(DIM, HEADS, grid_size=14, group_stride=4)
     attn = LongRangeGroupingAttention(DIM, HEADS, GRID, STRIDE)
-    with pytest.raises(ValueError, match=r"B \* 2"):
-        attn(torch.randn(3, PREFIX + GRID * GRID, DIM), num_views=2)
+    with pytest.raises(ValueError, match=r"`x` must be \(B \* 2, 16, D\) patch tokens, got \(3, 16, 8\)"):
+        attn(torch.randn(3, GRID * GRID, DIM), num_views=2)
+    with pytest.raises(ValueError, match=r"`x` must be \(B \* 1, 16, D\) patch tokens, got \(1, 18, 8\)"):
+        attn(torch.randn(1, 2 + GRID * GRID, DIM))  # cls/dist tokens are dropped before the blocks
 
 
 def test_paper_grouping_layout_is_49_groups_of_4_tokens_per_view():
@@ -129,52 +137,6 @@ def test_paper_grouping_layout_is_49_groups_of_4_tokens_per_view():
     members = groups[1 * 7 + 3, 0, :, 0].tolist()
     assert members == [1 * 14 + 3, 1 * 14 + 10, 8 * 14 + 3, 8 * 14 + 10] * 2
     assert torch.equal(attn._from_groups(groups, num_views=2), index)
-
-
-def test_merger_is_identity_when_not_more_tokens_than_clusters():
-    merger = SimilarTokenMerger(DIM, num_tokens=10, k=3)
-    x = torch.randn(2, 7, DIM)
-    assert torch.allclose(merger(x), x, atol=1e-6)
-
-
-def test_merger_averages_clusters_with_learned_weights():
-    torch.manual_seed(0)
-    merger = SimilarTokenMerger(4, num_tokens=2, k=2)
-    a = torch.tensor([1.0, 0, 0, 0]) * 10
-    b = torch.tensor([0, 1.0, 0, 0]) * 10
-    noise = 0.1 * torch.randn(6, 4)
-    x = torch.stack([a, b, a, b, a, b]) + noise  # two tight clusters, interleaved
-    merged = merger(x[None])[0]
-    w = torch.exp(merger.score(x).squeeze(-1))
-    expected = [(w[i, None] * x[i]).sum(0) / w[i].sum() for i in ([0, 2, 4], [1, 3, 5])]
-    # Cluster order follows the centre score; compare as a set.
-    got = sorted(merged.tolist(), key=lambda r: r[0])
-    want = sorted(torch.stack(expected).tolist(), key=lambda r: r[0])
-    assert torch.allclose(torch.tensor(got), torch.tensor(want), atol=1e-5)
-    centres, assign = merger.cluster(x[None])
-    assert set(assign[0, [0, 2, 4]].tolist()) != set(assign[0, [1, 3, 5]].tolist())
-    assert len(set(assign[0, [0, 2, 4]].tolist())) == 1
-
-
-def test_merger_density_peaks_follow_dpc_knn_reference():
-    torch.manual_seed(1)
-    x = torch.randn(1, 12, 3)
-    merger = SimilarTokenMerger(3, num_tokens=4, k=3)
-    centres, assign = merger.cluster(x)
-    # Reference: straightforward per-token loops.
-    pts = x[0]
-    d = [[float(torch.linalg.norm(pts[i] - pts[j])) / math.sqrt(3) for j in range(12)] for i in range(12)]
-    rho = [math.exp(-sum(v * v for v in sorted(d[i][:i] + d[i][i + 1 :])[:3]) / 3) for i in range(12)]
-    delta = []
-    for i in range(12):
-        denser = [d[i][j] for j in range(12) if rho[j] > rho[i] or (rho[j] == rho[i] and j < i)]
-        delta.append(min(denser) if denser else max(d[i]))
-    score = [rho[i] * delta[i] for i in range(12)]
-    want = sorted(range(12), key=lambda i: -score[i])[:4]
-    assert sorted(centres[0].tolist()) == sorted(want)
-    for i in range(12):
-        nearest = min(range(4), key=lambda m: d[i][centres[0, m]])
-        assert assign[0, i].item() == nearest
 
 
 def test_dice_loss_hand_computed():
@@ -199,19 +161,78 @@ def test_network_shapes_any_number_of_views_and_view_order_invariance():
         for v in (1, 5):
             assert net(torch.randn(2, v, 3, 64, 64)).shape == (2, 32, 32, 32)
         permuted = net(images[:, [2, 0, 1]])
+        # 3 views of 64 tokens merge into 64; one view already has 64 tokens, as many as clusters.
+        assert net.merger(net.encode(images)).shape == (2, 64, 64)
+        assert net.merger(net.encode(images[:, :1])).shape == (2, 64, 64)
     assert torch.allclose(out, permuted, atol=1e-5)
     with pytest.raises(ValueError, match=r"\(B, V, 3, H, W\)"):
         net(torch.randn(2, 3, 64, 64))
 
 
-def test_paper_preset_parameter_count_and_output_shape():
+def test_fewer_tokens_than_clusters_still_reconstruct():
+    # One 8x8-token view and 100 clusters: every token is its own cluster and the decoder reads 64 tokens.
+    torch.manual_seed(0)
+    net = LRGTNetwork.from_spec(dataclasses.replace(LRGT_PRESETS["tiny"], num_merged_tokens=100)).eval()
+    images = torch.randn(2, 1, 3, 64, 64)
+    with torch.no_grad():
+        assert net.merger(net.encode(images)).shape == (2, 64, 64)
+        out = net(images)
+    assert out.shape == (2, 32, 32, 32) and torch.isfinite(out).all()
+
+
+#: Parameter counts of the released LRGT (LiyingCV/Long-Range-Grouping-Transformer at a09fc43, config.py
+#: defaults: DeiT-B distilled, STM 2 x 196 tokens, decoder depth 8), obtained by instantiating its Encoder,
+#: Merger and Decoder in a scratch script outside this repository (timm 0.4.5's Mlp, no pretrained download).
+#: Its encoder builds the inter-view signature convolution (7,680 parameters) in all 12 blocks but uses
+#: it only in blocks 5, 7, 9 and 11; ours builds those 4, hence 8 x 7,680 = 61,440 fewer.
+RELEASED_PARAMETERS = {"encoder": 85_892_352, "merger": 14_172_674, "decoder": 29_798_625}
+
+
+def test_paper_preset_parameter_counts_per_module_match_the_released_code():
     with torch.device("meta"):
         net = LRGTNetwork.from_spec(LRGT_PRESETS["paper"])
         out = net(torch.empty(2, 3, 3, 224, 224))
-    count = sum(p.numel() for p in net.parameters())
-    assert abs(count - 130e6) / 130e6 < 0.03, count
+    counts = {name: sum(p.numel() for p in getattr(net, name).parameters()) for name in RELEASED_PARAMETERS}
+    assert counts == {"encoder": 85_892_352 - 8 * 7_680, "merger": 14_172_674, "decoder": 29_798_625}
+    for name, released in RELEASED_PARAMETERS.items():
+        assert abs(counts[name] - released) / released < 0.01, (name, counts[name], released)
+    assert sum(p.numel() for p in net.parameters()) == 129_802_211
     assert out.shape == (2, 32, 32, 32)
     assert net.encoder.grid_size == 14
+
+
+def test_encoder_drops_the_prefix_tokens_but_keeps_them_loadable():
+    torch.manual_seed(0)
+    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"]).eval()
+    images = torch.randn(2, 3, 3, 64, 64)
+    with torch.no_grad():
+        tokens = net.encode(images)
+        assert tokens.shape == (2, 3 * 64, 64)  # 8x8 patch tokens per view, nothing else
+        assert torch.allclose(
+            net.encoder.embed(images[0]), net.encoder.patch_embed(images[0]) + net.encoder.pos_embed[:, 2:]
+        )
+        out = net(images)
+        # cls, dist and their position embeddings take no part in the forward.
+        net.encoder.cls_token.normal_()
+        net.encoder.dist_token.normal_()
+        net.encoder.pos_embed[:, :2].normal_()
+        assert torch.equal(net(images), out)
+    assert not net.encoder.cls_token.requires_grad and not net.encoder.dist_token.requires_grad
+    assert {"encoder.cls_token", "encoder.dist_token"} <= set(net.state_dict())
+    assert net.encoder.pos_embed.shape == (1, 2 + 64, 64)
+
+
+def test_every_trainable_parameter_gets_a_gradient():
+    # Distributed training fails on parameters that take no part in the loss; the unused cls/dist tokens are frozen.
+    torch.manual_seed(0)
+    model = LRGT(preset="tiny")
+    target = (torch.rand(2, 32, 32, 32) > 0.7).float()
+    model.loss(model(torch.randn(2, 3, 3, 64, 64)), target).backward()
+    assert [n for n, p in model.named_parameters() if p.requires_grad and p.grad is None] == []
+    assert [n for n, p in model.named_parameters() if not p.requires_grad] == [
+        "network.encoder.cls_token",
+        "network.encoder.dist_token",
+    ]
 
 
 def test_pretrained_encoder_loads_into_grouping_blocks():
@@ -223,6 +244,37 @@ def test_pretrained_encoder_loads_into_grouping_blocks():
     block = preset.grouping_blocks[0]
     assert torch.equal(net.encoder.blocks[block].attn.qkv.weight, state[f"blocks.{block}.attn.qkv.weight"])
     assert not net.encoder.blocks[block].attn.signature.weight.any()
+    for key in ("cls_token", "dist_token", "pos_embed"):
+        assert torch.equal(getattr(net.encoder, key), state[key])
+
+
+def test_pretrained_encoder_from_a_url_and_a_checkpoint_that_loads_without_the_file(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"])
+    own = {k: v for k, v in net.encoder.state_dict().items() if ".signature." not in k}
+    torch.manual_seed(3)
+    state = {k: torch.randn_like(v) for k, v in own.items()}
+    source = tmp_path / "deit_tiny.pth"
+    torch.save({"model": state}, source)
+    model = LRGT(preset="tiny", pretrained_encoder=source.as_uri())  # file:// URL through torch.hub's cache
+    assert (tmp_path / "torch_home" / "hub" / "checkpoints" / "deit_tiny.pth").is_file()
+    assert torch.equal(model.network.encoder.blocks[0].attn.qkv.weight, state["blocks.0.attn.qkv.weight"])
+    ckpt = tmp_path / "model.ckpt"
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "hyper_parameters": dict(model.hparams),
+            "pytorch-lightning_version": "2.5.0",
+        },
+        ckpt,
+    )
+    source.unlink()
+    (tmp_path / "torch_home" / "hub" / "checkpoints" / "deit_tiny.pth").unlink()
+    restored = LRGT.load_from_checkpoint(ckpt)  # the weight file is gone: the checkpoint holds the weights
+    assert restored.hparams.pretrained_encoder == source.as_uri()
+    for (name, a), (_, b) in zip(model.state_dict().items(), restored.state_dict().items()):
+        assert torch.equal(a, b), name
+    assert LRGT.image_recipe == "lrgt"
 
 
 def test_preset_specs_hold_the_published_and_tiny_architectures():
@@ -230,12 +282,14 @@ def test_preset_specs_hold_the_published_and_tiny_architectures():
     assert set(LRGT_PRESETS) == {"paper", "tiny"}
     assert (paper.image_size, paper.patch_size, paper.embed_dim, paper.depth, paper.num_heads) == (224, 16, 768, 12, 12)
     assert paper.grouping_blocks == (5, 7, 9, 11) and paper.group_stride == 7 and paper.grid_size == 14
-    assert (paper.num_merged_tokens, paper.merger_k, paper.decoder_depth, paper.decoder_heads) == (196, 15, 3, 12)
-    assert paper.query_grid == 4 and paper.upsample_channels == (256, 64, 16) and paper.voxel_resolution == 32
+    assert (paper.num_merged_tokens, paper.merger_k, paper.merger_depth) == (196, 15, 2)
+    assert (paper.decoder_depth, paper.decoder_stage_depth, paper.decoder_heads) == (1, 2, 12)
+    assert paper.query_grid == 4 and paper.upsample_channels == (96, 12, 3) and paper.voxel_resolution == 32
     assert (tiny.image_size, tiny.patch_size, tiny.embed_dim, tiny.depth, tiny.num_heads) == (64, 8, 64, 4, 4)
     assert tiny.grouping_blocks == (1, 3) and tiny.group_stride == 4 and tiny.grid_size == 8
-    assert (tiny.num_merged_tokens, tiny.merger_k, tiny.decoder_depth, tiny.decoder_heads) == (64, 5, 1, 4)
-    assert tiny.query_grid == 4 and tiny.upsample_channels == (32, 16, 8) and tiny.voxel_resolution == 32
+    assert (tiny.num_merged_tokens, tiny.merger_k, tiny.merger_depth) == (64, 5, 2)
+    assert (tiny.decoder_depth, tiny.decoder_stage_depth, tiny.decoder_heads) == (1, 2, 1)
+    assert tiny.query_grid == 4 and tiny.upsample_channels == (16, 4, 1) and tiny.voxel_resolution == 32
 
 
 def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
@@ -243,8 +297,8 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
     with pytest.raises(dataclasses.FrozenInstanceError):
         tiny.depth = 8
     fields = dataclasses.asdict(tiny)
-    from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [32, 16, 8]})
-    assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (32, 16, 8)
+    from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [16, 4, 1]})
+    assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (16, 4, 1)
     assert from_lists == tiny and hash(from_lists) == hash(tiny)
     assert LRGTNetwork(**fields).spec == tiny
 
@@ -261,6 +315,16 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
         ({"depth": "4"}, TypeError, r"`depth` must be an int, got str '4'"),
         ({"embed_dim": 0}, ValueError, r"`embed_dim` must be an int >= 1, got 0"),
         ({"upsample_channels": (32, 0)}, ValueError, r"`upsample_channels\[1\]` must be an int >= 1, got 0"),
+        ({"decoder_depth": 0}, ValueError, r"`decoder_depth` must be an int >= 1, got 0"),
+        ({"merger_depth": 0}, ValueError, r"`merger_depth` must be an int >= 1, got 0"),
+        ({"decoder_stage_depth": -1}, ValueError, r"`decoder_stage_depth` must be an int >= 0, got -1"),
+        ({"num_heads": 3}, ValueError, r"`num_heads` must divide `embed_dim` 64, got 3"),
+        (
+            {"decoder_heads": 32},
+            ValueError,
+            r"`decoder_heads` must divide the decoder stage widths \[16, 32, 64\] \(`upsample_channels` "
+            r"\[16, 4, 1\] x patch\^3\), got 32",
+        ),
     ],
 )
 def test_spec_rejects_bad_fields(change, error, match):
@@ -317,17 +381,8 @@ def test_lightning_module_protocol_and_errors():
         small.predict_voxels(torch.randn(1, 3, 3, 64, 64))
 
 
-@pytest.fixture
-def one_thread():
-    """Run single-threaded: on 2 shared cores, 2 threads per process oversubscribe badly (10x slower)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.slow
-def test_overfits_a_handful_of_objects_with_a_trainer(one_thread):
+def test_overfits_a_handful_of_objects_with_a_trainer():
     import lightning as L
     from torch.utils.data import DataLoader
 
@@ -340,20 +395,21 @@ def test_overfits_a_handful_of_objects_with_a_trainer(one_thread):
     # ... tinted with a colour per object, like the distinct textures of real objects.
     images = images * torch.eye(3)[:, None, :, None, None].add(0.5)
     data = [{"images": images[i], "voxels": voxels[i], "category": "shape", "object_id": str(i)} for i in range(n)]
-    # Seeds 1-3 all reach IoU 1.0 with this recipe; seed 0 leaves the cube stuck near IoU 0.3
-    # (a local minimum of the Dice loss, which has no factor 2 and so a flat optimum).
-    torch.manual_seed(1)
+    # With the published merger and decoder, seeds 0-3 all reach IoU 1.0 on every shape by epoch 100
+    # of this recipe (seed 0 by epoch 75); the earlier conv decoder needed 300 epochs and got stuck
+    # near IoU 0.3 on the cube with seed 0.
+    torch.manual_seed(0)
     model = LRGT(
         preset="tiny",
         image_size=32,
         patch_size=4,
         upsample_channels=[16, 8],
         lr=2e-3,
-        milestones=[220],
+        milestones=[90],
         validation_fscore=False,
     )
     trainer = L.Trainer(
-        max_epochs=300,
+        max_epochs=120,
         accelerator="cpu",
         logger=False,
         enable_checkpointing=False,

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from lightning_vtr.models.vit import Attention, DistilledVisionTransformer, load_timm_deit
+from lightning_vtr.models.vit import Attention, Block, CrossAttention, DistilledVisionTransformer, load_timm_deit
 
 DIM, DEPTH, HEADS, PATCH, IMAGE = 8, 2, 2, 4, 16
 
@@ -136,3 +136,66 @@ def test_deit_base_parameter_count():
         vit = DistilledVisionTransformer()
     # DeiT-B distilled is 87.34 M with its two 1000-way heads (2 x 769,000 parameters).
     assert sum(p.numel() for p in vit.parameters()) == 87_338_192 - 2 * 769_000
+
+
+def test_cross_attention_adds_the_logit_bias_hand_computed():
+    # One head, identity projections, memory = the 4 unit vectors: the output row is the attention weights.
+    attn = CrossAttention(4, num_heads=1, qkv_bias=False)
+    eye = torch.eye(4)
+    with torch.no_grad():
+        attn.q.weight.copy_(eye)
+        attn.kv.weight.copy_(torch.cat([eye, eye]))
+        attn.proj.weight.copy_(eye)
+        attn.proj.bias.zero_()
+    query = torch.tensor([[[2.0, 0.0, 0.0, 0.0]]])  # logits q.k / sqrt(4) = (1, 0, 0, 0)
+    memory = eye[None]
+    e = math.e
+    assert torch.allclose(attn(query, memory), torch.tensor([[[e, 1, 1, 1]]]) / (e + 3), atol=1e-6)
+    # Bias ln 3 on token 2: weights (e, 1, 3, 1) / (e + 5), i.e. softmax(logits + bias).
+    bias = torch.tensor([0.0, 0.0, math.log(3.0), 0.0])
+    assert torch.allclose(attn(query, memory, bias), torch.tensor([[[e, 1, 3, 1]]]) / (e + 5), atol=1e-6)
+    with pytest.raises(ValueError, match=r"`dim` must be divisible by `num_heads` 3, got 4"):
+        CrossAttention(4, num_heads=3)
+
+
+def test_cross_attention_matches_softmax_formula_with_heads_and_bias():
+    torch.manual_seed(0)
+    attn = CrossAttention(DIM, HEADS)
+    x, memory, bias = torch.randn(3, 5, DIM), torch.randn(3, 7, DIM), torch.randn(3, 1, 1, 7)
+    q = attn.q(x)
+    k, v = attn.kv(memory).split(DIM, dim=-1)
+    hd = DIM // HEADS
+    heads = []
+    for h in range(HEADS):
+        sl = slice(h * hd, (h + 1) * hd)
+        w = torch.softmax(q[..., sl] @ k[..., sl].transpose(1, 2) / math.sqrt(hd) + bias[:, 0], dim=-1)
+        heads.append(w @ v[..., sl])
+    assert torch.allclose(attn(x, memory, bias), attn.proj(torch.cat(heads, dim=-1)), atol=1e-5)
+
+
+def test_block_layer_norm_eps_and_bias_free_qkv():
+    block = Block(DIM, HEADS, qkv_bias=False, norm_eps=1e-5)
+    assert block.norm1.eps == block.norm2.eps == 1e-5 and block.attn.qkv.bias is None
+    assert Block(DIM, HEADS).norm1.eps == 1e-6  # DeiT's
+
+
+def test_without_prefix_tokens_blocks_see_only_patches_and_timm_weights_still_load():
+    vit = DistilledVisionTransformer(IMAGE, PATCH, DIM, DEPTH, HEADS, use_prefix_tokens=False).eval()
+    state = _timm_state()
+    load_timm_deit(vit, state)
+    assert torch.equal(vit.cls_token, state["cls_token"]) and torch.equal(vit.pos_embed, state["pos_embed"])
+    assert not vit.cls_token.requires_grad and not vit.dist_token.requires_grad and vit.pos_embed.requires_grad
+    assert vit.num_output_prefix_tokens == 0
+    images = torch.randn(2, 3, IMAGE, IMAGE)
+    with torch.no_grad():
+        assert torch.allclose(vit.embed(images), vit.patch_embed(images) + state["pos_embed"][:, 2:], atol=1e-6)
+        tokens = vit(images)
+    assert tokens.shape == (2, 16, DIM)
+    # The same weights with the prefix tokens: different patch features (the prefix tokens take part).
+    with_prefix = _small_vit().eval()
+    load_timm_deit(with_prefix, state)
+    with torch.no_grad():
+        assert with_prefix(images).shape == (2, 2 + 16, DIM)
+        assert not torch.allclose(with_prefix(images)[:, 2:], tokens, atol=1e-3)
+    with pytest.raises(TypeError, match=r"`use_prefix_tokens` must be a bool, got int 0"):
+        DistilledVisionTransformer(IMAGE, PATCH, DIM, DEPTH, HEADS, use_prefix_tokens=0)
