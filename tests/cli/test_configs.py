@@ -31,8 +31,7 @@ def test_every_config_parses(path, capsys):
     callbacks = {c["class_path"]: c["init_args"] for c in config["trainer"]["callbacks"]}
     checkpoint = callbacks["lightning.pytorch.callbacks.ModelCheckpoint"]
     assert checkpoint["save_last"] is True
-    if path.stem not in ("pix2vox_tiny", "pix2vox_tiny_vtr"):  # the two configs from before 0.2 keep `last` only
-        assert (checkpoint["monitor"], checkpoint["mode"]) == ("val/iou@0.4", "max")
+    assert (checkpoint["monitor"], checkpoint["mode"]) == ("val/iou@0.4", "max")
     if path.stem.startswith("strategy_"):
         selector = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]["selector"]
         assert selector == path.stem.removeprefix("strategy_")
