@@ -23,6 +23,7 @@ HELP = "run the paper's comparison over seeds; write Table 1 with CIs, paired di
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from lightning_vtr.data import IMAGE_RECIPES
     from lightning_vtr.experiments.report import ABLATIONS, ReportConfig, default_experiment
     from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, VARIANTS
 
@@ -100,6 +101,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"fine-tuning learning-rate schedule: annealed to 0 or the model's own (default {defaults.finetune_lr})",
     )
     add(
+        "--recipe",
+        choices=("reference", *IMAGE_RECIPES),
+        default=defaults.recipe,
+        help=f"training-image recipe: reference (the model's published one) or a named recipe (default {defaults.recipe})",
+    )
+    add(
         "--batch-size",
         type=positive_int,
         default=defaults.batch_size,
@@ -122,6 +129,7 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
         finetune_epochs=args.finetune_epochs,
         fraction=args.fraction,
         finetune_lr=args.finetune_lr,
+        recipe=args.recipe,
         test_repeats=args.test_repeats,
         batch_size=args.batch_size,
         accelerator=args.accelerator,

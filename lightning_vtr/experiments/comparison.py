@@ -41,6 +41,12 @@ def add_comparison_arguments(parser: argparse.ArgumentParser, model: str) -> arg
         choices=FINETUNE_LR_SCHEDULES,
         help="fine-tuning learning rate: annealed to 0, or the model's own schedule",
     )
+    add(
+        "--recipe",
+        default="plain",
+        help="training-image recipe: plain (white background, ImageNet normalisation), reference (the model's "
+        "published recipe), or pix2vox / lrgt",
+    )
     add("--seed", type=int, default=0)
     add("--accelerator", default="auto")
     add("--devices", default="1")
@@ -89,6 +95,7 @@ def run_comparison(args: argparse.Namespace, model: str, **model_kwargs: Any) ->
         num_workers=args.num_workers,
         fraction=args.fraction,
         finetune_lr=args.finetune_lr,
+        recipe=args.recipe,
         seed=args.seed,
         accelerator=args.accelerator,
         devices=args.devices,

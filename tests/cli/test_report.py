@@ -93,6 +93,8 @@ def test_cli_defaults_are_the_report_defaults(captured):
     # Old command lines: --no-ablations is the default now, still accepted; --test-repeats names --test-triplets.
     assert main(["report", "--no-ablations", "--test-repeats", "3"]) == 0
     assert captured[-1].ablations == [] and captured[-1].experiment.test_repeats == 3
+    assert config.experiment.recipe == "plain"
+    assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
 
 
 @pytest.mark.parametrize(
@@ -104,6 +106,7 @@ def test_cli_defaults_are_the_report_defaults(captured):
         (["--test-triplets", "0"], "positive integer"),
         (["--model", "unet"], "invalid choice: 'unet'"),
         (["--finetune-lr", "linear"], "invalid choice: 'linear'"),
+        (["--recipe", "imagenet"], "invalid choice: 'imagenet'"),
         (["--pretrain-epochs", "0"], "positive integer"),
     ],
 )
