@@ -452,6 +452,8 @@ def _write_chart(
     ax = axes[0]
     width = 0.8 / max(1, len(rows))
     x = np.arange(len(VIEW_SETS))
+    # one colour per strategy in both panels (the view panel has no row for None-VTR)
+    colours = {title: f"C{i % 10}" for i, title in enumerate(rows)}
     for i, (title, run) in enumerate(rows.items()):
         stats = [_estimate(list(_values(payloads, run, v, "iou@0.4", seeds).values())) for v in VIEW_SETS]
         means = [100 * e.mean if e else math.nan for e in stats]
@@ -464,6 +466,7 @@ def _write_chart(
             yerr=errors if several else None,
             capsize=3 if several else 0,
             label=title,
+            color=colours[title],
         )
     ax.set_xticks(x, [VIEW_SET_TITLES[v] for v in VIEW_SETS])
     ax.set_ylabel("mIoU@0.4 (%)")
@@ -479,7 +482,8 @@ def _write_chart(
         for i, (title, stats) in enumerate(view_statistics.items()):
             offsets = [c - 0.4 * band + (i + 0.5) * width for c in centres]
             label = f"{title} (antipodal {100 * stats['antipodal_share']:.0f} %, spread {stats['triplet_spread']:.0f}°)"
-            ax.bar(offsets, [100 * share for share in stats["pitch_histogram"]], width, label=label)
+            shares = [100 * share for share in stats["pitch_histogram"]]
+            ax.bar(offsets, shares, width, label=label, color=colours.get(title))
         ax.set_xticks(list(PITCH_BANDS))
         ax.set_xlabel("pitch of the generated training views (degrees)")
         ax.set_ylabel("share of views (%)")
