@@ -26,6 +26,7 @@ from PIL import Image
 from lightning_vtr.data.binvox import write_binvox
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_choice, check_float, check_type
+from lightning_vtr.visualize import as_voxel_grid
 
 __all__ = [
     "MESH_FORMATS",
@@ -45,18 +46,8 @@ __all__ = [
 MESH_FORMATS = ("obj", "ply", "stl", "off", "glb")
 
 
-def _grid(voxels: Any, name: str = "voxels") -> np.ndarray:
-    if isinstance(voxels, torch.Tensor):
-        voxels = voxels.detach().cpu()
-        voxels = voxels.numpy() if voxels.dtype == torch.bool else voxels.float().numpy()
-    check_type(name, voxels, np.ndarray, "torch.Tensor or numpy.ndarray of shape (R, R, R)")
-    if voxels.ndim != 3 or len(set(voxels.shape)) != 1 or voxels.shape[0] == 0:
-        raise ValueError(f"`{name}` must have shape (R, R, R) with R >= 1, got {voxels.shape}")
-    return voxels
-
-
 def _binary(voxels: Any, threshold: float) -> np.ndarray:
-    grid = _grid(voxels)
+    grid = as_voxel_grid(voxels)
     return grid if grid.dtype == np.bool_ else grid >= threshold
 
 
@@ -79,7 +70,7 @@ def voxels_to_mesh(voxels: Any, threshold: float = 0.4) -> trimesh.Trimesh:
     from skimage.measure import marching_cubes
 
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0, min_open=True, max_open=True)
-    grid = _grid(voxels)
+    grid = as_voxel_grid(voxels)
     if grid.dtype == np.bool_:
         values, level = grid.astype(np.float32), 0.5
     else:

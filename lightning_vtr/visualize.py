@@ -35,6 +35,7 @@ __all__ = [
     "FALSE_NEGATIVE",
     "FALSE_POSITIVE",
     "VOXEL_COLOR",
+    "as_voxel_grid",
     "compose_sheet",
     "display_images",
     "error_labels",
@@ -74,8 +75,8 @@ _WHITE = (255, 255, 255)
 
 
 # --------------------------------------------------------------------------------------------- inputs
-def _grid(voxels: Any, name: str) -> np.ndarray:
-    """``(R, R, R)`` float or bool ndarray from a tensor or array."""
+def as_voxel_grid(voxels: Any, name: str = "voxels") -> np.ndarray:
+    """``(R, R, R)`` float or bool ndarray from a tensor or array; ``TypeError``/``ValueError`` naming ``name``."""
     if isinstance(voxels, Tensor):
         voxels = voxels.detach().cpu()
         voxels = voxels.numpy() if voxels.dtype == torch.bool else voxels.float().numpy()
@@ -87,7 +88,7 @@ def _grid(voxels: Any, name: str) -> np.ndarray:
 
 def _occupancy(voxels: Any, threshold: float, name: str) -> np.ndarray:
     """Bool ``(R, R, R)``: a bool grid as is, a float one as ``voxels >= threshold`` (the IoU convention)."""
-    grid = _grid(voxels, name)
+    grid = as_voxel_grid(voxels, name)
     return grid if grid.dtype == np.bool_ else grid >= threshold
 
 
@@ -115,7 +116,7 @@ def voxel_mesh(occupancy: Any, colors: np.ndarray | None = None) -> trimesh.Trim
     Returns:
         a :class:`trimesh.Trimesh` with 2 triangles (4 own vertices) per exposed face; no faces for an empty grid.
     """
-    occ = _grid(occupancy, "occupancy") != 0
+    occ = as_voxel_grid(occupancy, "occupancy") != 0
     r = occ.shape[0]
     if colors is not None:
         colors = np.asarray(colors)
