@@ -12,12 +12,16 @@ The rows are names of :data:`~lightning_vtr.experiments.training.VARIANTS`. By d
 :data:`MAIN_STRATEGIES`: ``none`` (no augmentation), ``random`` (angle-uniform views, the released code's
 sampler), ``error_guided`` (the callback's default, whatever it is) and ``paper`` (the paper's exact rule).
 Opt-in: the paper's other baselines (``nature``, ``viat``, ``mvtn``), ``random_area`` (area-uniform views),
-the error-guided variants (``released``, ``visible``, ``visible_nms``, ``visible_tau``,
-``visible_nms_search``), and the paper's ablations of the error-guided method:
+the error-guided variants (``released``, ``visible``, ``visible_nms``, ``visible_tau``, ``visible_tau3``,
+``visible_nms_search``, ``visible_tau_search``), and the paper's ablations of the error-guided method:
 
 * ``k``: bin interval :math:`K \in \{15, 30, 60, 90\}` degrees (the K = 30 run is the main "Ours" run);
 * ``pool``: with vs without the per-category viewpoint pool (``use_pool=False``);
 * ``single_view``: the "none" and "error_guided" fine-tuned models tested with 1 input view.
+
+Time: at the default budget (:func:`default_experiment`) the main comparison is estimated at about 61 min on 2
+idle CPU cores (per seed: ~7.5 min of pretraining, ~2.7-3.5 min of fine-tuning and testing per strategy); the
+training steps take over 80 % of it. The README has the measurement it is estimated from.
 
 It writes into ``out`` (the experiment's, :attr:`ReportConfig.experiment`):
 
