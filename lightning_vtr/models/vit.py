@@ -59,17 +59,21 @@ class PatchEmbed(nn.Module):
         return self.proj(images).flatten(2).transpose(1, 2)
 
 
+def _head_dim(dim: int, num_heads: int) -> int:
+    """Width of one head; ``dim`` and ``num_heads`` checked (positive ints, ``num_heads`` dividing ``dim``)."""
+    check_int("dim", dim, minimum=1)
+    check_int("num_heads", num_heads, minimum=1)
+    if dim % num_heads != 0:
+        raise ValueError(f"`dim` must be divisible by `num_heads` {num_heads}, got {dim}")
+    return dim // num_heads
+
+
 class Attention(nn.Module):
     """Multi-head self-attention over each sequence separately: ``(N, T, D) -> (N, T, D)``."""
 
     def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True) -> None:
         super().__init__()
-        check_int("dim", dim, minimum=1)
-        check_int("num_heads", num_heads, minimum=1)
-        if dim % num_heads != 0:
-            raise ValueError(f"`dim` must be divisible by `num_heads` {num_heads}, got {dim}")
-        self.num_heads = num_heads
-        self.head_dim = dim // num_heads
+        self.num_heads, self.head_dim = num_heads, _head_dim(dim, num_heads)
         self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
         self.proj = nn.Linear(dim, dim)
 
@@ -104,12 +108,7 @@ class CrossAttention(nn.Module):
 
     def __init__(self, dim: int, num_heads: int, qkv_bias: bool = True) -> None:
         super().__init__()
-        check_int("dim", dim, minimum=1)
-        check_int("num_heads", num_heads, minimum=1)
-        if dim % num_heads != 0:
-            raise ValueError(f"`dim` must be divisible by `num_heads` {num_heads}, got {dim}")
-        self.num_heads = num_heads
-        self.head_dim = dim // num_heads
+        self.num_heads, self.head_dim = num_heads, _head_dim(dim, num_heads)
         self.q = nn.Linear(dim, dim, bias=qkv_bias)
         self.kv = nn.Linear(dim, 2 * dim, bias=qkv_bias)
         self.proj = nn.Linear(dim, dim)

@@ -28,6 +28,8 @@ def build_tiny_components(seed: int = 0) -> dict:
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
+    from lightning_vtr.synthesis.zero123_checkpoint import REFERENCE_DDIM
+
     torch.manual_seed(seed)
     unet = UNet2DConditionModel(
         sample_size=8,
@@ -64,15 +66,7 @@ def build_tiny_components(seed: int = 0) -> dict:
         )
     )
     projection = nn.Linear(TINY_CLIP_DIM + 4, TINY_CROSS_DIM)
-    scheduler = DDIMScheduler(
-        num_train_timesteps=1000,
-        beta_start=0.00085,
-        beta_end=0.012,
-        beta_schedule="scaled_linear",
-        clip_sample=False,
-        set_alpha_to_one=False,
-        steps_offset=1,
-    )
+    scheduler = DDIMScheduler(**REFERENCE_DDIM)
     return dict(unet=unet, vae=vae, image_encoder=image_encoder, projection=projection, scheduler=scheduler)
 
 
