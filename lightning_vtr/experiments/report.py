@@ -203,6 +203,7 @@ class _Run:
     selector_kwargs: dict[str, Any] = field(default_factory=dict)
     callback_kwargs: dict[str, Any] = field(default_factory=dict)
     single_view_of: str | None = None  # the fine-tuned run a single-view evaluation tests
+    same_as: str | None = None  # an earlier run whose selector and callback resolve to the same arguments
 
 
 def _plan(config: ReportConfig) -> list[_Run]:
@@ -224,7 +225,25 @@ def _plan(config: ReportConfig) -> list[_Run]:
         runs.append(_Run("error_guided_no_pool", "error_guided", base["error_guided"], {"use_pool": False}))
     if "single_view" in config.ablations:
         runs += [_Run(f"single_view_{s}", s, single_view_of=s) for s in ("none", "error_guided")]
-    return runs
+    return _merge_identical(runs, config)
+
+
+def _merge_identical(runs: list[_Run], config: ReportConfig) -> list[_Run]:
+    """Mark each fine-tuning run that would train exactly what an earlier one trains (the callback's default
+    and ``"paper"`` while the default is the paper's rule) as the same run: the report fits it once."""
+    seen: dict[str, str] = {}
+    out = []
+    for run in runs:
+        if run.single_view_of is None:
+            callback_kwargs = {**config.callback_kwargs, **run.callback_kwargs}
+            resolved = training.resolved_strategy(run.strategy, run.selector_kwargs, callback_kwargs)
+            key = json.dumps(resolved, sort_keys=True, default=repr)
+            if key in seen:
+                run = replace(run, same_as=seen[key])
+            else:
+                seen[key] = run.name
+        out.append(run)
+    return out
 
 
 def _write_json(path: Path, payload: dict) -> None:
@@ -533,12 +552,12 @@ def _time_split(
     split["pretraining"]["total"] = total([_stage(t, "fit") for t in pre])
     for _, key in _FIT_STAGES:
         split["pretraining"][key] = total([_stage(t, key) for t in pre])
-    fitted = [r for r in runs if r.single_view_of is None]
+    fitted = [r for r in runs if r.single_view_of is None and r.same_as is None]
     fine = {r.name: [payloads[r.name][s] for s in seeds] for r in fitted}
     split["fine_tuning"]["total"] = total([p.get("train_seconds", math.nan) for ps in fine.values() for p in ps])
     for _, key in _FIT_STAGES:
         split["fine_tuning"][key] = total([_stage(p.get("timing"), key) for ps in fine.values() for p in ps])
-    tested = [payloads[r.name][s] for r in runs for s in seeds]
+    tested = [payloads[r.name][s] for r in runs if r.same_as is None for s in seeds]
     split["testing"]["total"] = total([_stage(p.get("timing"), "test", p.get("eval_seconds")) for p in tested])
     for _, key in _TEST_STAGES:
         split["testing"][key] = total([_stage(p.get("timing"), key) for p in tested])
@@ -553,6 +572,8 @@ def _time_split(
             split["per_run"][run.name].update(
                 dict.fromkeys(("fine_tuning", *(key for _, key in _FIT_STAGES)), math.nan)
             )
+        if run.same_as is not None:  # counted once, under the run it repeats
+            split["per_run"][run.name] = dict.fromkeys(split["per_run"][run.name], math.nan)
     split["measured"] = math.fsum(
         v for v in (split[k]["total"] for k in ("pretraining", "fine_tuning", "testing")) if math.isfinite(v)
     )
@@ -595,7 +616,8 @@ def _time_tables(split: dict[str, Any], runs: list[_Run], seeds: list[int]) -> s
     lines += ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for run in runs:
         row = split["per_run"][run.name]
-        cells = [run.name, _seconds(row["fine_tuning"]), *(_seconds(row[key]) for _, key in _FIT_STAGES)]
+        name = run.name if run.same_as is None else f"{run.name} (= {run.same_as}, fitted once)"
+        cells = [name, _seconds(row["fine_tuning"]), *(_seconds(row[key]) for _, key in _FIT_STAGES)]
         lines.append("| " + " | ".join([*cells, _seconds(row["testing"])]) + " |")
     return "\n".join(lines)
 
@@ -632,6 +654,10 @@ def run_report(config: ReportConfig) -> dict:
         pretrained = training.pretrain(seed_exp)
         pretraining[seed] = _read_json(Path(seed_exp.out) / "pretrain" / "timing.json")
         for run in runs:
+            if run.same_as is not None:
+                payloads[run.name][seed] = payloads[run.same_as][seed]
+                views[run.name][seed] = views[run.same_as][seed]
+                continue
             if run.single_view_of is not None:
                 payloads[run.name][seed] = _single_view(run, seed_exp, payloads[run.single_view_of][seed])
                 continue
@@ -686,6 +712,15 @@ def run_report(config: ReportConfig) -> dict:
         "",
         _table(main_rows, payloads, _METRICS, seeds),
     ]
+    merged = [run for run in runs if run.same_as is not None and run.name in main_rows.values()]
+    strategy_of = {run.name: run.strategy for run in runs}
+    if merged:
+        sections += [
+            "",
+            "Rows fitted once because their selector and callback arguments are identical: "
+            + "; ".join(f"{STRATEGY_TITLES[r.strategy]} = {STRATEGY_TITLES[strategy_of[r.same_as]]}" for r in merged)
+            + ".",
+        ]
     for baseline, by_title in differences.items():
         if not by_title:
             continue

@@ -6,6 +6,7 @@ directory and is skipped when that file exists, so a killed experiment re-run re
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import time
@@ -45,6 +46,7 @@ __all__ = [
     "make_model",
     "make_strategy",
     "pretrain",
+    "resolved_strategy",
     "run_strategy",
 ]
 
@@ -540,6 +542,34 @@ def make_strategy(
     selector = make_selector(variant.selector, **{**variant.selector_kwargs, **(selector_kwargs or {})})
     options = {"fraction": config.fraction, "seed": config.seed, **variant.callback_kwargs, **(callback_kwargs or {})}
     return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
+
+
+def resolved_strategy(
+    name: str, selector_kwargs: dict[str, Any] | None = None, callback_kwargs: dict[str, Any] | None = None
+) -> dict[str, Any] | None:
+    """Every argument :func:`make_strategy` would give the selector and the callback, defaults filled in.
+
+    Two strategies with equal resolved forms train the same run (the callback's default and ``"paper"`` while the
+    default is the paper's rule), so the report fits it once. ``None`` for ``"none"``.
+
+    Raises:
+        ValueError: ``name`` is not in :data:`VARIANTS`.
+    """
+    variant = VARIANTS[check_choice("name", name, VARIANTS)]
+    if variant.selector is None:
+        return None
+    selector_class = SELECTORS[variant.selector]
+    selector = inspect.signature(selector_class).bind_partial(**{**variant.selector_kwargs, **(selector_kwargs or {})})
+    selector.apply_defaults()
+    options = {**variant.callback_kwargs, **(callback_kwargs or {})}
+    callback = inspect.signature(ErrorGuidedViewAugmentation).bind_partial(**options)
+    callback.apply_defaults()
+    arguments = {k: v for k, v in callback.arguments.items() if k not in ("selector", "synthesizer")}
+    if arguments.get("use_pool") is None:  # the callback's default: the selector's preference
+        arguments["use_pool"] = selector_class.uses_pool
+    if arguments.get("search_fraction") is None:  # the callback's default: search as many as given views
+        arguments["search_fraction"] = arguments["fraction"]
+    return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
 
 
 #: ExperimentConfig fields that say where and on what a run happens, not what it measures.

@@ -64,6 +64,10 @@ _DEPTH_TIE_TOLERANCE = 1e-9
 _TABLE_CACHE_SIZE = 6
 #: Views processed together while building a table, to bound the float64 temporaries.
 _TABLE_VIEW_CHUNK = 16
+#: (voxel, view) pairs scattered per chunk of objects by the score functions. A chunk's index, key and
+#: first-hit buffers then stay in the CPU caches: on 2 cores, chunks of ~2 M pairs scored dense surfaces
+#: (the "visible" and "released" scores) 2.5x faster than one scatter over a batch of 64 objects.
+_SCORE_CHUNK_PAIRS = 1 << 21
 
 _table_cache: OrderedDict[tuple, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
 
@@ -252,6 +256,18 @@ def _first_hit_keys(
     return best.view(batch, num_views, pixels + 1)[..., :pixels]
 
 
+def _object_chunks(occupied: Tensor, num_views: int) -> list[slice]:
+    """Consecutive slices of the ``(B, N)`` batch, each scattering about :data:`_SCORE_CHUNK_PAIRS` pairs."""
+    chunks, start, pairs = [], 0, 0
+    for index, count in enumerate((occupied.sum(1) * num_views).tolist()):
+        if pairs and pairs + count > _SCORE_CHUNK_PAIRS:
+            chunks.append(slice(start, index))
+            start, pairs = index, 0
+        pairs += count
+    chunks.append(slice(start, occupied.shape[0]))
+    return chunks
+
+
 def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
     """Values ``(B, V, P)`` of the winning voxels of ``best`` keys in ``flat (B, N)``; 0 where nothing is hit."""
     hit = best != torch.iinfo(best.dtype).max
@@ -304,12 +320,13 @@ def projection_scores(
         return torch.zeros(0, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     flat = volumes.reshape(batch, -1)
     occupied = flat.bool() if binary else flat > eps  # binary: values are exactly 0 or 1
-    best = _first_hit_keys(occupied, resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
-    hits = (best < torch.iinfo(best.dtype).max).sum(-1, dtype=torch.int32)
-    if binary or (binary is None and _is_binary(flat, eps)):
-        total = hits.to(dtype)
-    else:
-        total = _hit_values(best, flat).sum(-1)
+    counts_only = binary or (binary is None and _is_binary(flat, eps))
+    hits, total = [], []
+    for chunk in _object_chunks(occupied, viewpoints.shape[0]):
+        best = _first_hit_keys(occupied[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
+        hits.append((best < torch.iinfo(best.dtype).max).sum(-1, dtype=torch.int32))
+        total.append(hits[-1].to(dtype) if counts_only else _hit_values(best, flat[chunk]).sum(-1))
+    hits, total = torch.cat(hits), torch.cat(total)
     if reduction == "sum":
         return total
     return torch.where(hits > 0, total / hits.clamp_min(1).to(total.dtype), torch.zeros_like(total))
@@ -353,9 +370,12 @@ def visible_error_scores(
         errors = (occupied_pred != occupied_gt).to(predicted.dtype)
     else:
         errors = (predicted - target).abs()
-    surface = (occupied_pred | occupied_gt).reshape(batch, -1)
-    best = _first_hit_keys(surface, resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
-    return _hit_values(best, errors.reshape(batch, -1)).sum(-1)
+    surface, errors = (occupied_pred | occupied_gt).reshape(batch, -1), errors.reshape(batch, -1)
+    scores = []
+    for chunk in _object_chunks(surface, viewpoints.shape[0]):
+        best = _first_hit_keys(surface[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT)
+        scores.append(_hit_values(best, errors[chunk]).sum(-1))
+    return torch.cat(scores)
 
 
 def error_projection(

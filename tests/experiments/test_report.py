@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import lightning as L
 import pytest
@@ -369,6 +370,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         seeds=[0, 2],
         strategies=[*STRATEGIES, "paper"],
         ablations=ABLATIONS,
+        selector_kwargs=_OWN_PAPER_RUN,
     )
     result = run_report(config)
 
@@ -429,6 +431,10 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         )
 
 
+#: A paper rule unlike the callback's default, so that the report fits it as a run of its own.
+_OWN_PAPER_RUN = {"paper": {"sigma": 4.0}}
+
+
 def _stub_runs(monkeypatch, tmp_path, iou: dict[str, dict[int, float]], views=None, timing=None):
     """Stub pretraining and fine-tuning: run ``r`` of seed ``s`` scores ``iou[r][s]`` on every view set (F-score
     half of it); ``views[r][s]`` are written as its selection record, ``timing[r][s]`` as its measured stages."""
@@ -474,7 +480,8 @@ def test_paired_differences_against_none_and_random_with_intervals_and_sign_agre
         "paper": dict(none),
     }
     _stub_runs(monkeypatch, tmp_path, iou)
-    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, selector_kwargs=_OWN_PAPER_RUN)
+    result = run_report(config)
     tables = _parse_tables(result["markdown"])
     t = stats.t.ppf(0.975, 2)
 
@@ -529,7 +536,8 @@ def test_view_distribution_table_pools_every_seeds_generated_views(tmp_path, mon
         "paper": {0: [[[0, 0], [180, 0], [90, 45]]]},
     }
     _stub_runs(monkeypatch, tmp_path, iou, views=views)
-    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, selector_kwargs=_OWN_PAPER_RUN)
+    result = run_report(config)
     header, rows = _parse_tables(result["markdown"])["Where the training views went"]
     assert header == [
         "Method",
@@ -550,6 +558,49 @@ def test_view_distribution_table_pools_every_seeds_generated_views(tmp_path, mon
     }
     assert result["views"]["Random"]["triplet_spread"] == pytest.approx((120 + 20 / 3) / 2)
     assert (tmp_path / "r" / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_strategies_resolving_to_the_same_arguments_are_fitted_once_and_shown_in_both_rows(tmp_path, monkeypatch):
+    """While the callback's default is the paper's rule, "error_guided" and "paper" are one run per seed."""
+    seeds = [0, 1]
+    iou = {name: {s: 0.40 + 0.01 * i + 0.001 * s for s in seeds} for i, name in enumerate(MAIN_STRATEGIES)}
+    timing = {
+        name: {s: {"fit": 100.0, "train_steps": 80.0, "test": 10.0} for s in seeds}
+        for name in ("none", "random", "error_guided")
+    }
+    calls = []
+    _stub_runs(monkeypatch, tmp_path, iou, timing=timing)
+    stub = experiment.run_strategy
+    monkeypatch.setattr(experiment, "run_strategy", lambda *a, **kw: calls.append(kw["run_name"]) or stub(*a, **kw))
+    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+
+    assert calls == ["none", "random", "error_guided"] * 2  # no "paper" fit
+    assert result["runs"]["paper"] == result["runs"]["error_guided"]
+    _, rows = _parse_tables(result["markdown"])["Paired difference to Random (mIoU points)"]
+    assert rows["Ours (paper rule)"] == rows["Ours"] == ["+1.00 [+1.00, +1.00], 2/2"] * 3
+    assert (
+        "fitted once because their selector and callback arguments are identical: Ours (paper rule) = Ours"
+        in (result["markdown"])
+    )
+    split = result["time_split"]
+    assert split["fine_tuning"]["total"] == 3 * 2 * 100.0  # three fits per seed, not four
+    assert split["testing"]["total"] == 3 * 2 * 10.0
+    assert all(math.isnan(v) for v in split["per_run"]["paper"].values())
+    # a paper rule that differs from the default is a run of its own again
+    calls.clear()
+    run_report(ReportConfig(default_experiment(out=str(tmp_path / "r2")), seeds=[0], selector_kwargs=_OWN_PAPER_RUN))
+    assert calls == ["none", "random", "error_guided", "paper"]
+
+
+def test_resolved_strategy_fills_in_every_default():
+    resolved = experiment.resolved_strategy("paper")
+    assert resolved == experiment.resolved_strategy("error_guided")
+    assert resolved["selector_kwargs"]["k"] == 30 and resolved["callback_kwargs"]["use_pool"] is True
+    assert resolved["callback_kwargs"]["search_fraction"] == resolved["callback_kwargs"]["fraction"] == 0.05
+    assert experiment.resolved_strategy("error_guided", {"k": 15}) != resolved
+    assert experiment.resolved_strategy("error_guided", callback_kwargs={"use_pool": False}) != resolved
+    assert experiment.resolved_strategy("random")["callback_kwargs"]["use_pool"] is False
+    assert experiment.resolved_strategy("none") is None
 
 
 def test_time_split_sums_the_measured_stages(tmp_path, monkeypatch):
