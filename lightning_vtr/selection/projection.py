@@ -183,11 +183,11 @@ def _projection_table(
     """Per voxel and view: the scatter slot and the sortable first-hit key (cached per argument set).
 
     Returns:
-        ``slot (V, N)`` int64 (the index dtype ``scatter_reduce`` needs): ``row * S + col``, or ``S^2`` (a
-        discarded slot) for a centre outside the image; ``key (V, N)``: ``rank * N + n`` where ``rank`` is the
-        position of voxel ``n`` in the view's (depth, flat index) order, so the smallest key in a pixel is its
-        first hit and ``key % N`` names the voxel. int32 when ``N^2`` fits, else int64. View-major, so that
-        the scatter runs along rows, one per view, which ATen spreads over the CPU threads.
+        ``slot (N, V)`` int64 (the index dtype ``scatter_reduce`` needs): ``v * (S^2 + 1) + row * S + col``, or ``v * (S^2 + 1) + S^2`` (a discarded
+        slot) for a centre outside the image; ``key (N, V)``: ``rank * N + n`` where ``rank`` is the
+        position of voxel ``n`` in the view's (depth, flat index) order, so the smallest key in a pixel
+        is its first hit and ``key % N`` names the voxel. int32 when ``N^2`` fits, else int64.
+        Voxel-major so a call gathers whole contiguous rows for its nonzero voxels.
     """
     vp64 = viewpoints.detach().to("cpu", torch.float64)
     key = (resolution, image_size, float(half_extent), str(device), tuple(vp64.flatten().tolist()))
@@ -207,7 +207,9 @@ def _projection_table(
         row, col, depth = coords.unbind(-1)
         row_i, col_i = torch.floor(row).long(), torch.floor(col).long()
         inside = (row_i >= 0) & (row_i < image_size) & (col_i >= 0) & (col_i < image_size)
-        slots.append(torch.where(inside, row_i * image_size + col_i, torch.full_like(row_i, pixels)))
+        view_ids = torch.arange(start, start + chunk.shape[0], dtype=torch.int64)[:, None]
+        slot = torch.where(inside, row_i * image_size + col_i, torch.full_like(row_i, pixels))
+        slots.append(slot + view_ids * (pixels + 1))
         # Group depths that differ only by rounding, then order by (group, flat index): one integer
         # rank that makes "nearest, then lowest index" a single amin.
         sorted_depth, by_depth = torch.sort(depth, dim=-1, stable=True)
@@ -218,8 +220,8 @@ def _projection_table(
         rank = torch.empty_like(order).scatter_(-1, order, flat.expand_as(order).contiguous())
         keys.append(rank * n_vox + flat)
     table = (
-        torch.cat(slots).contiguous().to(device=device, dtype=torch.int64),
-        torch.cat(keys).contiguous().to(device=device, dtype=key_dtype),
+        torch.cat(slots).t().contiguous().to(device=device, dtype=torch.int64),
+        torch.cat(keys).t().contiguous().to(device=device, dtype=key_dtype),
     )
     _table_cache[key] = table
     while len(_table_cache) > _TABLE_CACHE_SIZE:
@@ -237,7 +239,7 @@ def _first_hit_keys(
 ) -> Tensor:
     """Smallest first-hit key per ``(object, view, pixel)`` for ``occupied (B, N)`` bool voxels.
 
-    Returns ``(B, V, S^2)`` (a view of a view-major buffer); ``iinfo(dtype).max`` where nothing is hit.
+    Returns ``(B, V, S^2)``; ``iinfo(dtype).max`` where nothing is hit.
     """
     batch = occupied.shape[0]
     num_views, pixels = viewpoints.shape[0], image_size * image_size
@@ -246,12 +248,12 @@ def _first_hit_keys(
     flat_ids = torch.nonzero(occupied.reshape(-1)).squeeze(1)
     n_vox = resolution**3
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
-    index = slot.index_select(1, vox)  # (V, M): each view scatters into its own row
-    index += (obj * (pixels + 1))[None, :]
+    index = slot.index_select(0, vox)  # (M, V)
+    index += (obj * (num_views * (pixels + 1)))[:, None]
     sentinel = torch.iinfo(key.dtype).max
-    best = torch.full((num_views, batch * (pixels + 1)), sentinel, dtype=key.dtype, device=occupied.device)
-    best.scatter_reduce_(1, index, key.index_select(1, vox), reduce="amin", include_self=True)
-    return best.view(num_views, batch, pixels + 1)[..., :pixels].transpose(0, 1)
+    best = torch.full((batch * num_views * (pixels + 1),), sentinel, dtype=key.dtype, device=occupied.device)
+    best.scatter_reduce_(0, index.view(-1), key.index_select(0, vox).view(-1), reduce="amin", include_self=True)
+    return best.view(batch, num_views, pixels + 1)[..., :pixels]
 
 
 def _object_chunks(occupied: Tensor, num_views: int) -> list[slice]:
@@ -269,8 +271,8 @@ def _object_chunks(occupied: Tensor, num_views: int) -> list[slice]:
 def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
     """Values ``(B, V, P)`` of the winning voxels of ``best`` keys in ``flat (B, N)``; 0 where nothing is hit."""
     hit = best != torch.iinfo(best.dtype).max
-    winner = torch.where(hit, best % flat.shape[1], torch.zeros_like(best)).reshape(best.shape[0], -1).long()
-    return torch.gather(flat, 1, winner).view(best.shape).masked_fill_(~hit, 0)
+    winner = torch.where(hit, best % flat.shape[1], torch.zeros_like(best)).view(best.shape[0], -1).long()
+    return torch.gather(flat, 1, winner).view_as(best).masked_fill_(~hit, 0)
 
 
 def _is_binary(flat: Tensor, eps: float) -> bool:
@@ -428,7 +430,7 @@ def error_projection(
         result = (best != torch.iinfo(best.dtype).max).to(vol.dtype)
     else:
         result = _hit_values(best, flat)
-    result = result.reshape(out_shape)
+    result = result.view(out_shape)
     return result[0] if unbatched else result
 
 
