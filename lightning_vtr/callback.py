@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
+from lightning.pytorch.utilities.seed import isolate_rng
 from torch import Tensor
 from tqdm.auto import tqdm
 
@@ -22,7 +23,7 @@ from lightning_vtr.data.dataset import GeneratedSample
 from lightning_vtr.protocol import check_reconstruction_model
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
-from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
+from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities, check_type
 
 __all__ = ["ErrorGuidedViewAugmentation"]
 
@@ -30,6 +31,11 @@ _STATE_VERSION = 1
 _NOTHING_GENERATED = -2
 # What the callback calls on the datamodule (VTRDataModule has all of it).
 _DATAMODULE_API = ("split_records", "eval_item", "object_views", "add_samples", "transform")
+# Returning logits instead of probabilities is the usual way a model breaks the protocol.
+_PROBABILITIES_HINT = (
+    "did predict_voxels return logits? apply torch.sigmoid to them (the callback thresholds occupancy "
+    "probabilities); non-finite values mean the model diverged"
+)
 
 
 @dataclass
@@ -153,7 +159,11 @@ class ErrorGuidedViewAugmentation(L.Callback):
     Raises:
         TypeError: an argument of the wrong type (e.g. a ``selector`` that is neither a ViewSelector nor a name).
         ValueError: on invalid arguments (names the argument and value), e.g. an unknown selector name.
-        MisconfigurationException: in ``setup`` when the Trainer, datamodule or model cannot be served.
+        MisconfigurationException: in ``setup`` when the Trainer, datamodule or model cannot be served; in
+            ``on_fit_start`` (one prediction on one training item, before any training) when ``predict_voxels``
+            gives another grid than the dataset's voxels (the message names both shapes).
+        ValueError: whenever ``predict_voxels`` returns values outside ``[0, 1]`` or non-finite ones (logits are
+            the usual cause; the message gives the observed range and the count of non-finite values).
 
     Example::
 
@@ -267,6 +277,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
                 f"{'no datamodule was given' if dm is None else type(dm).__name__ + ' lacks ' + ', '.join(missing)}. "
                 "Use lightning_vtr.data.VTRDataModule (or implement these methods) and pass it as `datamodule=`."
             )
+        # A synthesizer that cannot serve the training objects (rendering without meshes) fails now, not after epoch 0.
+        self.synthesizer.check_serves(dm.split_records("train"), view_set=self.source_view_set)
         try:
             check_reconstruction_model(pl_module)
         except TypeError as err:
@@ -275,6 +287,35 @@ class ErrorGuidedViewAugmentation(L.Callback):
             rank_zero_warn(
                 f"The selector returns {self.selector.num_views} views per sample but the model trains with "
                 f"{pl_module.num_views}; generated samples will have {self.selector.num_views} views."
+            )
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # Here rather than in `setup`: the model is on its device now. One prediction, before any training.
+        self._check_model_output(trainer, pl_module)
+
+    @torch.no_grad()
+    def _check_model_output(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Refuse a model whose ``predict_voxels`` does not give the dataset's voxel grid (one training item)."""
+        dm = trainer.datamodule
+        records = dm.split_records("train")
+        if not records:
+            return  # `_run` warns that nothing can be generated
+        item = dm.eval_item(records[0], self.source_view_set, seed=0)
+        was_training = pl_module.training
+        pl_module.eval()
+        try:
+            with isolate_rng():  # a model that draws random numbers here must not shift the training's stream
+                predicted = self._predict(pl_module, [item["images"]])
+        finally:
+            pl_module.train(was_training)
+        expected = tuple(item["voxels"].shape)
+        if tuple(predicted.shape[1:]) != expected:
+            raise MisconfigurationException(
+                f"ErrorGuidedViewAugmentation compares predictions with the dataset's voxels, but "
+                f"{type(pl_module).__name__}.predict_voxels returned shape {tuple(predicted.shape)} for one training "
+                f"item ({item['category']}/{item['object_id']}, images {tuple(item['images'].shape)}) and the "
+                f"dataset's voxels have shape {expected}: use a model whose voxel_resolution is {expected[0]} or a "
+                f"dataset built at the model's resolution."
             )
 
     # ------------------------------------------------------------------ hooks
@@ -338,10 +379,23 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     @torch.no_grad()
     def _predict(self, pl_module: L.LightningModule, images: list[Tensor]) -> Tensor:
+        """``predict_voxels`` over ``images`` (each ``(V, 3, H, W)``) in batches: ``(N, R, R, R)`` probabilities.
+
+        Raises:
+            ValueError: the model returned another batch size or anything but finite values in ``[0, 1]``.
+        """
+        name = f"{type(pl_module).__name__}.predict_voxels"
         preds = []
         for start in range(0, len(images), self.batch_size):
             batch = torch.stack(images[start : start + self.batch_size]).to(pl_module.device)
-            preds.append(pl_module.predict_voxels(batch).float().cpu())
+            out = pl_module.predict_voxels(batch)
+            if not isinstance(out, Tensor) or out.ndim != 4 or out.shape[0] != batch.shape[0]:
+                found = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+                raise ValueError(
+                    f"`{name}` must return occupancy probabilities of shape (B, R, R, R) for images of shape "
+                    f"{tuple(batch.shape)}, got {found}"
+                )
+            preds.append(check_probabilities(name, out.detach().float().cpu(), _PROBABILITIES_HINT))
         return torch.cat(preds)
 
     def _select(

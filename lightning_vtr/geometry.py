@@ -78,15 +78,26 @@ def check_viewpoints(viewpoints: Tensor, name: str = "viewpoints") -> Tensor:
     """Check that ``viewpoints`` has shape ``(..., 2)`` and finite values; return it as a float tensor.
 
     Raises:
-        ValueError: for another shape or a NaN / infinite angle (the message names ``name``).
+        ValueError: for another shape or a NaN / infinite angle; the message names ``name`` and the first
+            row holding one (its index over the leading dimensions: ``3`` for ``(V, 2)``, ``(0, 3)`` for
+            ``(B, V, 2)``) with the row's values.
     """
     vp = _as_tensor(viewpoints)
     if not vp.is_floating_point():
         vp = vp.to(torch.get_default_dtype())
     if vp.ndim == 0 or vp.shape[-1] != 2:
         raise ValueError(f"`{name}` must have shape (..., 2) holding (yaw, pitch) in degrees, got {tuple(vp.shape)}")
-    if not torch.isfinite(vp).all():
-        raise ValueError(f"`{name}` must hold finite angles, got NaN or infinite values")
+    bad_rows = ~torch.isfinite(vp).all(dim=-1)
+    if bad_rows.any():
+        first = tuple(int(i) for i in bad_rows.nonzero()[0]) if vp.ndim > 1 else ()
+        values = [float(v) for v in vp[first].tolist()]
+        if not first:  # a single (yaw, pitch)
+            raise ValueError(f"`{name}` must hold finite (yaw, pitch) angles in degrees, got {values}")
+        row = first[0] if len(first) == 1 else first
+        raise ValueError(
+            f"`{name}` must hold finite (yaw, pitch) angles in degrees, got {values} at row {row} "
+            f"({int(bad_rows.sum())} of {bad_rows.numel()} rows hold NaN or infinite values)"
+        )
     return vp
 
 

@@ -24,6 +24,8 @@ from lightning_vtr.synthesis.render import RenderSynthesizer
 __all__ = [
     "EmptyPredictionModel",
     "TinyUserModel",
+    "assert_same_training_state",
+    "fit_pix2vox",
     "generated_contents",
     "generated_index",
     "make_callback",
@@ -139,3 +141,45 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+def fit_pix2vox(root: Any, tmp_path: Path, epochs: int, ckpt_path: str | None = None, **callback_kw: Any) -> L.Trainer:
+    """Fit tiny Pix2Vox++ (64 px, seeded) with the augmentation callback (64-px mesh rendering, 15 % of the
+    objects) for ``epochs`` epochs of 2 batches, saving ``last.ckpt`` under ``tmp_path / "ckpt"`` after every
+    epoch; resume from ``ckpt_path`` when given. Returns the Trainer (its ``lightning_module``, ``datamodule``
+    and ``optimizers`` are the run's final state)."""
+    from lightning_vtr.models import Pix2VoxPlusPlus
+
+    L.seed_everything(0, verbose=False)
+    dm = VTRDataModule(str(root), image_size=64, batch_size=4, generated_dir=str(tmp_path / "gen"))
+    model = Pix2VoxPlusPlus(preset="tiny", validation_fscore=False)
+    checkpoint = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+    callback_kw.setdefault("synthesizer", RenderSynthesizer(image_size=64))
+    callback_kw.setdefault("fraction", 0.15)
+    callback_kw.setdefault("progress_bar", False)
+    callback_kw.setdefault("log_images", False)
+    trainer = make_trainer(tmp_path, epochs, [ErrorGuidedViewAugmentation(**callback_kw), checkpoint])
+    trainer.fit(model, datamodule=dm, ckpt_path=ckpt_path)
+    return trainer
+
+
+def assert_same_training_state(a: L.Trainer, b: L.Trainer) -> None:
+    """Assert two Trainers end with exactly equal model state (parameters and buffers), optimizer state
+    (every state tensor, every param-group hyperparameter) and learning-rate scheduler state."""
+    state_a, state_b = a.lightning_module.state_dict(), b.lightning_module.state_dict()
+    assert state_a.keys() == state_b.keys()
+    differing = [k for k in state_a if not torch.equal(state_a[k], state_b[k])]
+    assert not differing, f"model tensors differ: {differing}"
+    assert len(a.optimizers) == len(b.optimizers)
+    for opt_a, opt_b in zip(a.optimizers, b.optimizers):
+        sd_a, sd_b = opt_a.state_dict(), opt_b.state_dict()
+        assert sd_a["param_groups"] == sd_b["param_groups"]
+        assert sd_a["state"].keys() == sd_b["state"].keys()
+        for index, slots in sd_a["state"].items():
+            assert slots.keys() == sd_b["state"][index].keys()
+            for name, value in slots.items():
+                other = sd_b["state"][index][name]
+                same = torch.equal(value, other) if isinstance(value, torch.Tensor) else value == other
+                assert same, f"optimizer state {index}/{name} differs"
+    schedulers = [[c.scheduler.state_dict() for c in t.lr_scheduler_configs] for t in (a, b)]
+    assert schedulers[0] == schedulers[1]

@@ -12,15 +12,29 @@ __all__ = ["HELP", "add_arguments", "run"]
 HELP = "build a ShapeNet-VTR dataset (procedural, ShapeNetCore or a mesh folder)"
 
 
+def _pitch_range(text: str) -> tuple[float, float]:
+    """Parse ``"low,high"`` degrees, e.g. ``0,40``."""
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected two comma-separated angles low,high in degrees, got {text!r}"
+        ) from None
+    if not -90 <= low <= high <= 90:
+        raise argparse.ArgumentTypeError(f"expected -90 <= low <= high <= 90, got {text!r}")
+    return low, high
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from lightning_vtr.data.builder import SOURCE_LAYOUTS
+    from lightning_vtr.data.builder import PROTOCOLS, SOURCE_LAYOUTS
     from lightning_vtr.data.format import UP_AXES
 
     parser.description = (
         "Render the Aligned / Hemispherical / Spherical view sets and voxelize every object into a ShapeNet-VTR "
         "directory (docs/dataset_format.md). Re-running finishes a killed build without redoing finished "
         "objects. With --shard i/n each array job builds every n-th object; the last shard to finish (or a "
-        "later run with --finalize) writes metadata.json."
+        "later run with --finalize) writes metadata.json. --protocol pix3d instead renders one 'pix3d' view set "
+        "of --views-per-object random views per object (the paper's Pix3D training set: --categories chair, 60 views)."
     )
     add = parser.add_argument
     add("output", nargs="?", type=Path, help="dataset directory (omit with --embedded: the cache directory)")
@@ -41,6 +55,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--resolution", type=positive_int, default=None, help="voxel grid side R (default 32)")
     add("--views-per-set", type=positive_int, default=None, help="views per view set (default 24)")
     add("--aligned-pitch", type=float, default=None, help="Aligned elevation in degrees (default 30)")
+    add(
+        "--protocol",
+        choices=PROTOCOLS,
+        default=None,
+        help="'vtr' (default): the aligned/hemispherical/spherical view sets; 'pix3d': one 'pix3d' set of random views",
+    )
+    add(
+        "--views-per-object",
+        type=positive_int,
+        default=None,
+        help="--protocol pix3d: views per object (default 60, at most 100)",
+    )
+    add(
+        "--pitch-range",
+        type=_pitch_range,
+        default=None,
+        help="--protocol pix3d: low,high pitch in degrees (default 0,40; write --pitch-range=-10,30 for a negative low); "
+        "yaw is uniform",
+    )
     add("--split", type=ratios, default=(0.7, 0.1, 0.2), help="train,val,test ratios (default 0.7,0.1,0.2)")
     add("--seed", type=int, default=None, help="seed of shapes, view sets and split (default 0)")
     add("--workers", type=positive_int, default=1, help="parallel build processes (default 1)")
@@ -72,6 +105,9 @@ def run(args: argparse.Namespace) -> int:
         "views_per_set": args.views_per_set,
         "aligned_pitch": args.aligned_pitch,
         "seed": args.seed,
+        "protocol": args.protocol,
+        "views_per_object": args.views_per_object,
+        "pitch_range": args.pitch_range,
     }
     given = {k: v for k, v in given.items() if v is not None}
     if args.embedded:

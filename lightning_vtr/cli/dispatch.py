@@ -17,7 +17,7 @@ import shlex
 import sys
 from collections.abc import Callable, Sequence
 
-from lightning_vtr.cli import build_dataset, dataset_info, predict, report
+from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
 
 __all__ = ["COMMANDS", "build_parser", "goes_to_lightning", "main"]
@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callab
     "dataset-info": (dataset_info.HELP, dataset_info.add_arguments, dataset_info.run),
     "report": (report.HELP, report.add_arguments, report.run),
     "predict": (predict.HELP, predict.add_arguments, predict.run),
+    "pix3d": (pix3d.HELP, pix3d.add_arguments, pix3d.run),
+    "evaluate-folder": (pix3d.FOLDER_HELP, pix3d.add_folder_arguments, pix3d.run_folder),
 }
 #: A word that only a LightningCLI command line has: a config, its own options, or a dotted class argument.
 _LIGHTNING_WORD = re.compile(

@@ -137,6 +137,13 @@ def _import_class(path: str) -> type:
     raise ValueError(f"`--model` must be pix2vox, lrgt or an importable class path (module.Class), got {path!r}")
 
 
+def _checkpoint_file(ckpt: str | Path) -> Path:
+    path = Path(ckpt).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"`--ckpt` must be a checkpoint file, got {str(ckpt)!r} (no such file)")
+    return path
+
+
 def load_model(ckpt: str | Path, model: str | None = None, map_location: Any = "cpu") -> L.LightningModule:
     """Load a reconstruction model from a Lightning checkpoint, in eval mode.
 
@@ -150,9 +157,7 @@ def load_model(ckpt: str | Path, model: str | None = None, map_location: Any = "
     """
     from lightning_vtr.experiments.training import MODELS
 
-    path = Path(ckpt).expanduser()
-    if not path.is_file():
-        raise FileNotFoundError(f"`--ckpt` must be a checkpoint file, got {str(ckpt)!r} (no such file)")
+    path = _checkpoint_file(ckpt)
     hparams, _ = _checkpoint_hparams(path)
     if model is not None:
         candidates = [MODELS[model] if model in MODELS else _import_class(model)]
@@ -212,6 +217,26 @@ def _square(rgba: np.ndarray) -> np.ndarray:
     return out
 
 
+def _folder_pictures(folder: Path, given: str | Path) -> tuple[dict[str, Path], list[Path]]:
+    """``(mask files by view stem, view files)`` of an image folder, checked.
+
+    Raises:
+        FileNotFoundError: not a folder, or no picture in it (the message names the folder and the suffixes).
+    """
+    if not folder.is_dir():
+        raise FileNotFoundError(f"`--images` must name folders of pictures, got {str(given)!r} (not a folder)")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    masks = {p.stem[: -len(_MASK_SUFFIX)]: p for p in files if p.stem.endswith(_MASK_SUFFIX)}
+    views = [p for p in files if not p.stem.endswith(_MASK_SUFFIX)]
+    if not views:
+        found = f"it holds {len(files)} mask file(s) only" if files else "it holds none"
+        raise FileNotFoundError(
+            f"no pictures in the image folder {str(folder)!r}: expected files ending in {', '.join(IMAGE_SUFFIXES)} "
+            f"(case-insensitive, masks <stem>{_MASK_SUFFIX}.<ext> aside); {found}"
+        )
+    return masks, views
+
+
 def read_view_folder(
     directory: str | Path, *, background_key: Sequence[int] | None = None, key_tolerance: int = 12
 ) -> tuple[list[np.ndarray], list[str], np.ndarray | None]:
@@ -231,15 +256,7 @@ def read_view_folder(
     from lightning_vtr.data.binvox import read_binvox
 
     folder = Path(directory).expanduser()
-    if not folder.is_dir():
-        raise FileNotFoundError(f"`--images` must name folders of pictures, got {str(directory)!r} (not a folder)")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    masks = {p.stem[: -len(_MASK_SUFFIX)]: p for p in files if p.stem.endswith(_MASK_SUFFIX)}
-    views = [p for p in files if not p.stem.endswith(_MASK_SUFFIX)]
-    if not views:
-        raise FileNotFoundError(
-            f"no pictures in the image folder {str(folder)!r}: expected files ending in {', '.join(IMAGE_SUFFIXES)}"
-        )
+    masks, views = _folder_pictures(folder, directory)
     pictures = []
     for path in views:
         with Image.open(path) as image:
@@ -430,6 +447,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"`--key-tolerance` must be in [0, 255], got {args.key_tolerance}")
     if args.data is not None and not Path(args.data).expanduser().is_dir():
         raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} (not a folder)")
+    _checkpoint_file(args.ckpt)
+    for folder in args.images or ():  # every folder, before the model loads or anything is written
+        _folder_pictures(Path(folder).expanduser(), folder)
     # 2. load the model and its image transform
     model = load_model(args.ckpt, args.model)
     dm = make_datamodule(args.ckpt, model, args.data)

@@ -19,6 +19,15 @@ a build is identical whatever the worker count or sharding):
   in ``[0, 30]``, although that cap is a quarter of the hemisphere's area).
 * Spherical: uniform over the whole sphere's area (``sin(pitch)`` uniform in ``[-1, 1]``).
 
+``protocol="pix3d"`` instead renders one view set, ``pix3d``, of ``views_per_object`` views per object
+(default 60: the training set of the paper's Pix3D experiment, after Pix2Vox++: ShapeNet chairs, 60
+renders per object, composited over random SUN backgrounds at training time, see
+``VTRDataModule(background="folder:PATH")``). Its viewpoints imitate photographs of furniture: yaw uniform
+in ``[-180, 180)`` (every side), pitch uniform in ``pitch_range`` (default ``[0, 40]`` degrees: from seat
+height to a moderate look down, seldom from below or straight above; our choice, as neither the paper nor
+Pix2Vox++ states its angles), seeded per object from ``(seed, category, object_id)`` like the random VTR
+sets (:func:`pix3d_viewpoints`).
+
 Robustness: every file is written atomically and ``object.json`` last, so a killed build re-run redoes
 only unfinished objects. A failing object leaves ``<object dir>/error.json`` (message naming the file)
 instead of stopping the build; every pass collects these into ``<root>/errors.json``. ``shard=(i, n)``
@@ -67,11 +76,16 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int
 __all__ = [
     "BuildReport",
     "EMBEDDED_DEFAULTS",
+    "PIX3D_PITCH_RANGE",
+    "PIX3D_VIEWS_PER_OBJECT",
+    "PIX3D_VIEW_SET",
+    "PROTOCOLS",
     "SOURCE_LAYOUTS",
     "build_dataset",
     "embedded_dataset_dir",
     "ensure_embedded_dataset",
     "finalize_dataset",
+    "pix3d_viewpoints",
     "view_set_viewpoints",
 ]
 
@@ -79,6 +93,15 @@ __all__ = [
 DEFAULT_PROCEDURAL_OBJECTS = 30
 #: The values of ``source_layout``: ``"auto"`` detects one of the other three.
 SOURCE_LAYOUTS: tuple[str, ...] = ("auto", "shapenet_v1", "shapenet_v2", "generic")
+#: The values of ``protocol``: ``"vtr"`` (the Aligned / Hemispherical / Spherical view sets) or ``"pix3d"``
+#: (one set of ``views_per_object`` random views per object: the training set of the Pix3D experiment).
+PROTOCOLS: tuple[str, ...] = ("vtr", "pix3d")
+#: The one view set of a ``protocol="pix3d"`` build.
+PIX3D_VIEW_SET = "pix3d"
+#: Views per object of a ``protocol="pix3d"`` build by default (the paper's 60, as Pix2Vox++'s Pix3D training set).
+PIX3D_VIEWS_PER_OBJECT = 60
+#: The pitch range (degrees) of a ``protocol="pix3d"`` build by default: seat height to a moderate look down.
+PIX3D_PITCH_RANGE: tuple[float, float] = (0.0, 40.0)
 # Level 1 of zlib: PNGs of flat-shaded renders shrink ~10 % less than at the default 6 but encode
 # several times faster, and encoding is a large share of the build time at 128 px.
 _PNG_COMPRESS_LEVEL = 1
@@ -149,6 +172,47 @@ def view_set_viewpoints(
         "hemispherical": hemi.double().numpy(),
         "spherical": sphere.double().numpy(),
     }
+
+
+def pix3d_viewpoints(
+    category: str,
+    object_id: str,
+    *,
+    views_per_object: int = PIX3D_VIEWS_PER_OBJECT,
+    pitch_range: tuple[float, float] = PIX3D_PITCH_RANGE,
+    seed: int = 0,
+) -> np.ndarray:
+    """The ``pix3d`` view set of one object: yaw uniform in ``[-180, 180)``, pitch uniform in ``pitch_range``.
+
+    A pure function of its arguments (seeded from ``(seed, category, object_id)``, in a stream apart from
+    :func:`view_set_viewpoints`'s), so shards and workers agree.
+
+    Returns:
+        ``(views_per_object, 2)`` float64 (yaw, pitch) in degrees.
+    """
+    g = torch.Generator().manual_seed(_stable_int(seed, category, object_id, PIX3D_VIEW_SET))
+    vp = sample_uniform_viewpoints(views_per_object, mode="angle", pitch_range=tuple(pitch_range), generator=g)
+    return vp.double().numpy()
+
+
+def _object_viewpoints(category: str, object_id: str, opts: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Every view set of one object under the build options ``opts``."""
+    if opts.get("protocol", "vtr") == "pix3d":
+        views = pix3d_viewpoints(
+            category,
+            object_id,
+            views_per_object=opts["views_per_set"],
+            pitch_range=tuple(opts["pitch_range"]),
+            seed=opts["seed"],
+        )
+        return {PIX3D_VIEW_SET: views}
+    return view_set_viewpoints(
+        category,
+        object_id,
+        views_per_set=opts["views_per_set"],
+        aligned_pitch=opts["aligned_pitch"],
+        seed=opts["seed"],
+    )
 
 
 @dataclass
@@ -268,13 +332,7 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
             raise ValueError(f"the voxelization of {task.path or task.key} at R={opts['resolution']} is empty")
         write_binvox(directory / "model.binvox", voxels)
         save_mesh(mesh, directory / "mesh.ply")
-        views = view_set_viewpoints(
-            task.category,
-            task.object_id,
-            views_per_set=opts["views_per_set"],
-            aligned_pitch=opts["aligned_pitch"],
-            seed=opts["seed"],
-        )
+        views = _object_viewpoints(task.category, task.object_id, opts)
         renderer = get_renderer(opts["image_size"])
         names = list(views)
         # One render call for all view sets: the mesh is uploaded to the GL context once.
@@ -355,6 +413,42 @@ def _check_args(
     check_choice("up_axis", up_axis, (None, *UP_AXES))
 
 
+def _protocol_opts(
+    protocol: str, views_per_set: int, views_per_object: int | None, pitch_range: Sequence[float] | None
+) -> tuple[int, dict[str, Any]]:
+    """``(views per view set, the options only a Pix3D build has)``; checks the protocol's arguments."""
+    check_choice("protocol", protocol, PROTOCOLS)
+    if protocol == "vtr":
+        for name, value in (("views_per_object", views_per_object), ("pitch_range", pitch_range)):
+            if value is not None:
+                raise ValueError(
+                    f"`{name}` applies to protocol='pix3d' only (protocol 'vtr' renders `views_per_set` views per "
+                    f"view set), got {name}={value!r}"
+                )
+        return views_per_set, {}
+    if views_per_set != 24:
+        raise ValueError(
+            "`views_per_set` applies to protocol='vtr' only; protocol='pix3d' renders `views_per_object` views "
+            f"per object (default {PIX3D_VIEWS_PER_OBJECT}), got views_per_set={views_per_set!r}"
+        )
+    count = PIX3D_VIEWS_PER_OBJECT if views_per_object is None else views_per_object
+    check_int("views_per_object", count, minimum=1, maximum=100)  # images are named 00..99.png
+    low, high = PIX3D_PITCH_RANGE if pitch_range is None else _pair("pitch_range", pitch_range)
+    check_float("pitch_range[0]", low, minimum=-90.0, maximum=90.0)
+    check_float("pitch_range[1]", high, minimum=-90.0, maximum=90.0)
+    if low > high:
+        raise ValueError(f"`pitch_range` must be (low, high) with low <= high, got {(low, high)}")
+    return int(count), {"protocol": "pix3d", "pitch_range": [float(low), float(high)]}
+
+
+def _pair(name: str, value: Any) -> tuple[float, float]:
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise TypeError(f"`{name}` must be a pair of numbers (low, high) in degrees, got {value!r}") from None
+    return low, high
+
+
 def _content_config(source, categories, objects_per_category, opts, split, layout, up_axis) -> dict[str, Any]:
     source = "procedural" if str(source) == "procedural" else str(Path(source).resolve())
     return {
@@ -372,7 +466,8 @@ def _write_or_check_config(out: Path, config: dict[str, Any]) -> None:
     path = out / "build_config.json"
     if path.is_file():
         old = json.loads(path.read_text())
-        diff = {k: (old.get(k), v) for k, v in config.items() if old.get(k) != v}
+        # Both sides' keys: a Pix3D build's config has keys a VTR build's lacks.
+        diff = {k: (old.get(k), config.get(k)) for k in {*old, *config} if old.get(k) != config.get(k)}
         if diff:
             details = ", ".join(f"{k}: {a!r} on disk vs {b!r} now" for k, (a, b) in sorted(diff.items()))
             raise ValueError(
@@ -400,6 +495,9 @@ def build_dataset(
     progress: bool = True,
     source_layout: str = "auto",
     up_axis: str | None = None,
+    protocol: str = "vtr",
+    views_per_object: int | None = None,
+    pitch_range: tuple[float, float] | None = None,
 ) -> BuildReport:
     """Build (or finish building) a ShapeNet-VTR dataset in ``output_dir``; see the module docstring.
 
@@ -421,6 +519,11 @@ def build_dataset(
         progress: show a tqdm progress bar.
         source_layout: ``"auto"`` (detect), ``"shapenet_v1"``, ``"shapenet_v2"`` or ``"generic"``.
         up_axis: the meshes' up axis; ``None``: ``"y"`` for ShapeNet layouts, ``"z"`` for generic folders.
+        protocol: ``"vtr"`` (the three view sets) or ``"pix3d"`` (one ``pix3d`` view set of
+            ``views_per_object`` random views; see the module docstring). Pass ``categories=["chair"]`` for the
+            paper's Pix3D training set.
+        views_per_object: ``protocol="pix3d"`` only: views per object (default 60, at most 100).
+        pitch_range: ``protocol="pix3d"`` only: ``(low, high)`` pitch in degrees (default ``(0, 40)``).
 
     Returns:
         A :class:`BuildReport` of this pass.
@@ -430,6 +533,7 @@ def build_dataset(
             an ``output_dir`` that was built with other options.
     """
     _check_args(image_size, resolution, views_per_set, aligned_pitch, split, shard, source_layout, workers, up_axis)
+    views_per_set, pix3d = _protocol_opts(protocol, views_per_set, views_per_object, pitch_range)
     start = time.perf_counter()
     out = Path(output_dir)
     opts = dict(
@@ -438,6 +542,7 @@ def build_dataset(
         views_per_set=int(views_per_set),
         aligned_pitch=float(aligned_pitch),
         seed=int(seed),
+        **pix3d,  # only in a Pix3D build: a VTR build's config stays what it was before protocols existed
     )
     tasks = _discover(source, source_layout, objects_per_category, categories, up_axis)
     out.mkdir(parents=True, exist_ok=True)
@@ -511,21 +616,33 @@ def _finalize(
                 objects[f"{category}/{oid}"] = {"split": name, "views": info["views"]}
     from lightning_vtr.renderer import DEFAULT_DISTANCE, DEFAULT_YFOV_DEG
 
+    protocol = opts.get("protocol", "vtr")
+    if protocol == "pix3d":
+        low, high = opts["pitch_range"]
+        view_sets = [PIX3D_VIEW_SET]
+        sampling = {PIX3D_VIEW_SET: f"yaw uniform in [-180, 180), pitch uniform in [{low:g}, {high:g}]"}
+        extra = {"views_per_object": opts["views_per_set"], "pitch_range": [low, high]}
+    else:
+        view_sets = list(VIEW_SETS)
+        sampling = {
+            "aligned": "yaw every 360/views_per_set deg at aligned_pitch",
+            "hemispherical": "area-uniform, pitch in [0, 90]",
+            "spherical": "area-uniform, pitch in [-90, 90]",
+        }
+        extra = {}
     atomic_write_json(
         out / "metadata.json",
         {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
+            "protocol": protocol,
             "resolution": opts["resolution"],
             "image_size": opts["image_size"],
             "views_per_set": opts["views_per_set"],
-            "view_sets": list(VIEW_SETS),
+            "view_sets": view_sets,
             "aligned_pitch": opts["aligned_pitch"],
-            "sampling": {
-                "aligned": "yaw every 360/views_per_set deg at aligned_pitch",
-                "hemispherical": "area-uniform, pitch in [0, 90]",
-                "spherical": "area-uniform, pitch in [-90, 90]",
-            },
+            **extra,
+            "sampling": sampling,
             "camera": {"type": "perspective", "yfov_deg": DEFAULT_YFOV_DEG, "distance": DEFAULT_DISTANCE},
             "split_ratios": [float(r) for r in split],
             "seed": seed,
@@ -563,6 +680,7 @@ def finalize_dataset(output_dir: str | Path) -> BuildReport:
     errors = _collect_errors(out, tasks)
     atomic_write_json(out / "errors.json", errors)
     opts = {k: config[k] for k in ("image_size", "resolution", "views_per_set", "aligned_pitch", "seed")}
+    opts.update({k: config[k] for k in ("protocol", "pitch_range") if k in config})  # a Pix3D build's
     report = BuildReport(output_dir=out, failed=errors)
     report.finalized = _finalize(out, tasks, errors, config["split"], config["seed"], opts, config)
     if not report.finalized:

@@ -15,7 +15,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
-from torch.utils.data import ConcatDataset, DataLoader
+from torch.utils.data import ConcatDataset, DataLoader, DistributedSampler
 
 from lightning_vtr.data.dataset import (
     GeneratedDataset,
@@ -52,9 +52,28 @@ class _EpochSeededSampler(torch.utils.data.Sampler[int]):
         return iter(torch.randperm(self.length, generator=torch.Generator().manual_seed(self.seed)).tolist())
 
 
+class _UnpaddedShardSampler(DistributedSampler):
+    """Rank ``r`` of ``n`` gets items ``r, r + n, r + 2n, ...`` of the dataset, in order, and nothing else.
+
+    Lightning's default :class:`~torch.utils.data.DistributedSampler` repeats the first items until the
+    dataset divides evenly among the ranks, so a test mean would count them twice. Shards here differ in
+    length by at most one, which evaluation allows: no gradients are synced, and the metrics are synced once
+    at the epoch's end. Being a ``DistributedSampler``, Lightning keeps it instead of injecting its own.
+    """
+
+    def __init__(self, dataset: torch.utils.data.Dataset, num_replicas: int, rank: int) -> None:
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False)
+        self.total_size = len(dataset)
+        self.num_samples = len(range(rank, self.total_size, num_replicas))
+
+    def __iter__(self):
+        return iter(range(self.rank, self.total_size, self.num_replicas))
+
+
 class VTRDataModule(L.LightningDataModule):
-    """Serves a ShapeNet-VTR dataset: Aligned/train for training, Aligned/val for validation, and the
-    test split of every view set as named test dataloaders (in ``test_view_sets`` order).
+    """Serves a ShapeNet-VTR dataset: Aligned/train for training, Aligned/val for validation (another view set
+    with ``train_view_set``), and the test split of every view set as named test dataloaders (in
+    ``test_view_sets`` order).
 
     Generated view sets enter through :meth:`add_samples`; they are written to ``generated_dir`` and
     appear from the next ``train_dataloader()`` call on (use ``reload_dataloaders_every_n_epochs=1``).
@@ -68,7 +87,11 @@ class VTRDataModule(L.LightningDataModule):
             for the 3D-R2N2 / Pix2Vox layout (one view set, served as "aligned").
         num_views: images per sample.
         image_size: side of the model input in pixels.
-        background: RGB compositing background (in training too, unless ``background_range`` is given).
+        background: RGB compositing background (in training too, unless ``background_range`` is given); or
+            ``"folder:PATH"``: training views are composited over random crops of the images under ``PATH``
+            (``.png``/``.jpg``/``.jpeg``, recursive; e.g. SUN backgrounds for the Pix3D protocol), one image
+            and crop per view drawn from ``(seed, epoch, index)``; validation and test keep the recipe's
+            background (white for ``"plain"``). It combines with any ``recipe``, whose colour range it replaces.
         normalize: ``"imagenet"``, ``"pm1"`` (``x * 2 - 1``, the same as mean = std = 0.5) or ``None``.
         background_range: training only: a per-sample random background, each channel an int in
             ``(low, high)`` inclusive (a pair for all channels, or three pairs); validation and test keep
@@ -94,6 +117,17 @@ class VTRDataModule(L.LightningDataModule):
             weighing the same. More repeats cut the variance of a test mean without more objects.
         embedded: build options for the embedded dataset (see ``lightning_vtr.data.builder.build_dataset``).
         n_views: deprecated alias of ``num_views``.
+        verify: at :meth:`setup`, read every image and voxel file of the dataset once
+            (:func:`~lightning_vtr.data.verify.verify_dataset`) and raise one
+            :class:`~lightning_vtr.data.format.DatasetFormatError` listing every missing, unreadable or
+            inconsistent file, instead of failing at the first epoch that draws one. Under a distributed
+            Trainer global rank 0 reads the files and every process raises. ShapeNet-VTR directories only (not
+            ``shapenet_rendering``); ``lightning-vtr dataset-info ROOT --verify`` is the same check by hand.
+        train_view_set: the view set of the train and validation splits: ``"aligned"`` (the paper's protocol),
+            or ``"pix3d"`` for a dataset built with ``lightning-vtr build-dataset --protocol pix3d``.
+
+    Raises:
+        DatasetFormatError: at :meth:`setup`, with ``verify=True``, when the dataset has problems.
 
     Example:
         >>> dm = VTRDataModule(num_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
@@ -108,7 +142,7 @@ class VTRDataModule(L.LightningDataModule):
         shapenet_rendering: dict[str, str] | None = None,
         num_views: int = 3,
         image_size: int = 224,
-        background: tuple[int, int, int] = (255, 255, 255),
+        background: tuple[int, int, int] | str = (255, 255, 255),
         normalize: str | None = "imagenet",
         batch_size: int = 32,
         num_workers: int = 0,
@@ -122,6 +156,8 @@ class VTRDataModule(L.LightningDataModule):
         n_views: int | None = None,
         background_range: Sequence[int] | Sequence[Sequence[int]] | None = None,
         recipe: ImageRecipe | str | Mapping[str, Any] = "plain",
+        verify: bool = False,
+        train_view_set: str = "aligned",
     ) -> None:
         super().__init__()
         # Resolved before save_hyperparameters(), which reads the arguments' current values.
@@ -145,13 +181,23 @@ class VTRDataModule(L.LightningDataModule):
                     f"`shapenet_rendering` must have the keys {list(_SHAPENET_RENDERING_KEYS)}, "
                     f"got {shapenet_rendering!r} (missing {sorted(missing)})"
                 )
+        check_type("verify", verify, bool, "bool")
+        check_type("train_view_set", train_view_set, str, "str")
+        if verify and shapenet_rendering is not None:
+            raise ValueError(
+                "`verify` must be False with `shapenet_rendering` (it checks ShapeNet-VTR directories), "
+                f"got verify={verify!r}"
+            )
         self.save_hyperparameters(ignore=["n_views"])
         if isinstance(recipe, ImageRecipe):
             self.hparams["recipe"] = dataclasses.asdict(recipe)
         self.root = Path(root).expanduser() if root is not None else None
         self.shapenet_rendering = shapenet_rendering
         self.num_views = int(num_views)
+        background, background_folder = _split_background(background, background_range)
         self.recipe = _resolve_recipe(recipe, background, normalize, background_range)
+        if background_folder is not None:
+            self.recipe = dataclasses.replace(self.recipe, background_folder=background_folder)
         #: validation/test (and the callback's) transform; ``train_transform`` adds the recipe's random ops.
         self.transform = self.recipe.eval_transform(image_size)
         differs = self.recipe.is_random or self.recipe.background_range is not None
@@ -165,6 +211,8 @@ class VTRDataModule(L.LightningDataModule):
         self.test_repeats = int(test_repeats)
         self.embedded = dict(embedded or {})
         self._generated_dir_arg = generated_dir
+        self.verify = verify
+        self.train_view_set = train_view_set
         self._records: list[ObjectRecord] | None = None
         self._generated: list[dict] = []
         self._next_sample_id = 0
@@ -204,6 +252,8 @@ class VTRDataModule(L.LightningDataModule):
         else:
             from lightning_vtr.data.format import scan_dataset
 
+            if self.verify:
+                self._verify(root)
             records = scan_dataset(root)
         if self._category_filter is not None:
             unknown = set(self._category_filter) - {r.category for r in records}
@@ -215,6 +265,25 @@ class VTRDataModule(L.LightningDataModule):
         # A fixed order makes every process (and every resumed run) index objects identically.
         self._records = sorted(records, key=lambda r: (r.category, r.object_id))
         self._by_key = {(r.category, r.object_id): r for r in self._records}
+
+    def _verify(self, root: Path) -> None:
+        """Raise one :class:`DatasetFormatError` listing every problem of the dataset at ``root``.
+
+        Under a distributed Trainer global rank 0 reads the files and every process raises its message, so a
+        node's processes do not each read the whole dataset.
+        """
+        from lightning_vtr.data.format import DatasetFormatError
+        from lightning_vtr.data.verify import verify_dataset
+
+        distributed = self.trainer is not None and self.trainer.world_size > 1
+        message = None
+        if not distributed or self.trainer.is_global_zero:
+            report = verify_dataset(root, progress=self.trainer is None or self.trainer.is_global_zero)
+            message = None if report.ok else report.error_message()
+        if distributed:
+            message = self.trainer.strategy.broadcast(message, src=0)
+        if message:
+            raise DatasetFormatError(message)
 
     @property
     def records(self) -> list[ObjectRecord]:
@@ -259,7 +328,7 @@ class VTRDataModule(L.LightningDataModule):
         return int(self.trainer.current_epoch) if self.trainer is not None else 0
 
     def train_dataset(self) -> torch.utils.data.Dataset:
-        base = self._dataset("train", "aligned", train=True)
+        base = self._dataset("train", self.train_view_set, train=True)
         base.set_epoch(self._epoch())
         if not self._generated:
             return base
@@ -293,10 +362,23 @@ class VTRDataModule(L.LightningDataModule):
         return self._loader(self.train_dataset(), shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self._dataset("val", "aligned", train=False), shuffle=False)
+        return self._loader(self._dataset("val", self.train_view_set, train=False), shuffle=False)
 
     def test_dataloader(self) -> list[DataLoader]:
-        return [self._loader(self._dataset("test", name, train=False), shuffle=False) for name in self.test_view_sets]
+        """One loader per view set of ``test_view_sets``. Under a distributed Trainer each process gets its own
+        shard, without the repeated items Lightning's sampler pads with, so every test object counts once."""
+        loaders = []
+        for name in self.test_view_sets:
+            dataset = self._dataset("test", name, train=False)
+            shards = self.trainer.distributed_sampler_kwargs if self.trainer is not None else None
+            if shards and shards.get("num_replicas", 1) > 1:
+                sampler = _UnpaddedShardSampler(dataset, shards["num_replicas"], shards["rank"])
+                loaders.append(
+                    DataLoader(dataset, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers)
+                )
+            else:
+                loaders.append(self._loader(dataset, shuffle=False))
+        return loaders
 
     def predict_dataloader(self) -> list[DataLoader]:
         """The test split of every view set in ``test_view_sets`` (``Trainer.predict``, ``lightning-vtr predict``)."""
@@ -389,6 +471,24 @@ class VTRDataModule(L.LightningDataModule):
                 f"The checkpoint lists {len(missing)} generated samples missing under {self.generated_dir} "
                 f"(first: {missing[0]}). Pass `generated_dir` pointing at the run's generated samples."
             )
+
+
+_FOLDER_PREFIX = "folder:"
+
+
+def _split_background(background: Any, background_range: Any) -> tuple[Any, str | None]:
+    """``(colour, folder)``: an RGB ``background`` as is, or ``"folder:PATH"`` as the plain colour and ``PATH``."""
+    if not isinstance(background, str):
+        return background, None
+    folder = background[len(_FOLDER_PREFIX) :].strip() if background.startswith(_FOLDER_PREFIX) else ""
+    if not folder:
+        raise ValueError(f"`background` must be three ints (R, G, B) or 'folder:PATH', got {background!r}")
+    if background_range is not None:
+        raise ValueError(
+            f"`background_range` must be None with `background={background!r}` (the folder's crops are the "
+            f"training background), got {background_range!r}"
+        )
+    return IMAGE_RECIPES["plain"].background, folder
 
 
 def _resolve_recipe(

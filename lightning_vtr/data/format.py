@@ -178,9 +178,14 @@ def load_metadata(root: str | Path) -> dict:
         found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise DatasetFormatError(f"{path}: format is {found!r}, expected {FORMAT_NAME!r}")
     version = meta.get("version")
-    if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        expected = f"{FORMAT_VERSION}" if FORMAT_VERSION == 1 else f"1..{FORMAT_VERSION}"
+        if isinstance(version, int) and not isinstance(version, bool) and version > FORMAT_VERSION:
+            advice = "a newer lightning_vtr wrote it: upgrade lightning_vtr to read it"
+        else:
+            advice = "rebuild it with `lightning-vtr build-dataset`"
         raise DatasetFormatError(
-            f"{path}: format version {version!r}; this lightning_vtr reads versions 1..{FORMAT_VERSION}"
+            f"{path}: unsupported format version: expected {expected}, found {version!r}; {advice}"
         )
     missing = [k for k in ("objects", "view_sets", "resolution", "image_size") if k not in meta]
     if missing:

@@ -3,26 +3,32 @@
 The ops are plain torch functions on ``(..., 3, H, W)`` float images in ``[0, 1]``; none of them draws a
 random number. :class:`ImageTransform` chains them and draws every random parameter of a sample from a
 key such as ``(seed, epoch, index)``, so a sample's augmentation never depends on the worker, the process
-or a global random state. :class:`ImageRecipe` holds the settings of one recipe; :data:`IMAGE_RECIPES`
+or a global random state. Training views can also be composited over random crops of the images of a folder
+(:class:`BackgroundFolder`, ``ImageRecipe(background_folder=...)``). :class:`ImageRecipe` holds the settings of one recipe; :data:`IMAGE_RECIPES`
 names the reference ones.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from PIL import Image
 from torch import Tensor
 
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 __all__ = [
+    "BACKGROUND_EXTENSIONS",
     "IMAGENET_MEAN",
     "IMAGENET_PCA_EIGVAL",
     "IMAGENET_PCA_EIGVEC",
@@ -30,6 +36,7 @@ __all__ = [
     "IMAGE_RECIPES",
     "NORMALIZATIONS",
     "SHAPENET_RENDERING_CROP",
+    "BackgroundFolder",
     "ImageRecipe",
     "ImageTransform",
     "adjust_brightness",
@@ -69,6 +76,11 @@ NORMALIZATIONS: tuple[str | None, ...] = ("imagenet", "pm1", None)
 # Appended to every key, so the augmentation stream never coincides with another stream drawn from the
 # same (seed, epoch, index) (the dataset's choice of views is drawn from exactly that key).
 _AUGMENTATION_STREAM = 7919
+# Appended after the augmentation stream for folder backgrounds: their draws come from a generator of their
+# own, so enabling them leaves every other draw of a key unchanged.
+_BACKGROUND_STREAM = 104729
+#: The image files a background folder contributes (suffix, case-insensitive; searched recursively).
+BACKGROUND_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg")
 # Luma weights (ITU-R BT.601) of R, G, B: what the references' grayscale uses.
 _LUMA = (0.299, 0.587, 0.114)
 
@@ -243,6 +255,84 @@ def _check_background_range(value: Any) -> tuple[tuple[int, int], ...] | None:
     return tuple(ranges)
 
 
+# ---------------------------------------------------------------------------------------------- backgrounds
+class BackgroundFolder:
+    """The images under a folder, as backgrounds to composite training views over.
+
+    The folder is scanned once, recursively, for :data:`BACKGROUND_EXTENSIONS` files, sorted by their path
+    relative to the folder (so every process and every machine numbers them alike). :meth:`crop` cuts an
+    ``height x width`` window out of image ``index`` at a relative position; an image smaller than the window
+    in either side is first scaled up (bilinear, aspect ratio kept) until it covers it.
+
+    Args:
+        path: the folder (e.g. SUN397's images).
+
+    Raises:
+        FileNotFoundError: ``path`` is not a directory.
+        ValueError: it holds no image file.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.root = Path(path).expanduser()
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"`background` folder {str(self.root)!r} is not a directory")
+        found = [p for p in self.root.rglob("*") if p.suffix.lower() in BACKGROUND_EXTENSIONS and p.is_file()]
+        self.paths = sorted(found, key=lambda p: p.relative_to(self.root).as_posix())
+        if not self.paths:
+            raise ValueError(
+                f"`background` folder {str(self.root)!r} has no images: expected files ending in "
+                f"{', '.join(BACKGROUND_EXTENSIONS)} (searched recursively), found none"
+            )
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __repr__(self) -> str:
+        return f"BackgroundFolder({str(self.root)!r}, {len(self.paths)} images)"
+
+    def load(self, index: int) -> np.ndarray:
+        """Image ``index`` as ``(h, w, 3)`` uint8 RGB."""
+        with self._open(index) as img:
+            return np.asarray(img.convert("RGB"))
+
+    def _open(self, index: int) -> Image.Image:
+        path = self.paths[index]
+        try:
+            return Image.open(path)
+        except (OSError, ValueError) as err:
+            raise OSError(f"Cannot read background image {path}: {err}") from err
+
+    def crop(self, index: int, position: tuple[float, float], height: int, width: int) -> np.ndarray:
+        """A ``(height, width, 3)`` uint8 window of image ``index``.
+
+        ``position = (u, v)`` in ``[0, 1)`` places it: the window starts at row ``floor(u * (h - height + 1))``
+        and column ``floor(v * (w - width + 1))`` of the (scaled-up if needed) ``h x w`` image, so every
+        position is equally likely for uniform ``(u, v)``.
+        """
+        path = self.paths[index]
+        with self._open(index) as img:
+            try:
+                w, h = img.size
+                if h < height or w < width:
+                    scale = max(height / h, width / w)
+                    h, w = max(height, math.ceil(h * scale)), max(width, math.ceil(w * scale))
+                    img = img.convert("RGB").resize((w, h), Image.BILINEAR)
+                top = min(int(position[0] * (h - height + 1)), h - height)
+                left = min(int(position[1] * (w - width + 1)), w - width)
+                # Crop before converting: only the window is converted and copied.
+                return np.asarray(img.crop((left, top, left + width, top + height)).convert("RGB"))
+            except (OSError, ValueError) as err:
+                raise OSError(f"Cannot read background image {path}: {err}") from err
+
+
+def _check_background_folder(value: Any) -> str | None:
+    if value is None:
+        return None
+    if not isinstance(value, (str, os.PathLike)) or not str(value).strip():
+        raise TypeError(f"`background_folder` must be None or a folder path, got {type(value).__name__} {value!r}")
+    return str(value)
+
+
 # ---------------------------------------------------------------------------------------------- recipes
 @dataclass(frozen=True)
 class ImageRecipe:
@@ -254,7 +344,9 @@ class ImageRecipe:
     saturation factors drawn from ``[1 - b, 1 + b]``, applied in a random order), PCA lighting noise, a
     clamp to ``[0, 1]`` (unless ``clamp=False``), a horizontal flip of each image with probability 1/2 and one random permutation of
     the RGB channels follow the resize. Background, jitter, lighting and permutation are drawn once per
-    sample (shared by its views), flips once per image.
+    sample (shared by its views), flips once per image. With ``background_folder``, training composites each
+    view instead over its own random crop (the view's size, a random position) of a random image of that
+    folder (:class:`BackgroundFolder`), drawn from the same key.
 
     Args:
         background: RGB (0-255) composited under transparent pixels; the only background outside training.
@@ -271,6 +363,9 @@ class ImageRecipe:
         permute_rgb: training only: permute the RGB channels of a sample at random.
         clamp: training only: clamp to ``[0, 1]`` after jitter and lighting (the published recipes do not).
         normalize: one of :data:`NORMALIZATIONS`.
+        background_folder: training only: a folder of images (``.png``/``.jpg``/``.jpeg``, recursive) whose
+            random crops replace ``background_range`` (e.g. SUN backgrounds, as in Pix2Vox++'s Pix3D protocol).
+            Outside training the background stays ``background``.
 
     Example:
         >>> recipe = IMAGE_RECIPES["pix2vox"]
@@ -291,6 +386,7 @@ class ImageRecipe:
     permute_rgb: bool = False
     clamp: bool = True
     normalize: str | None = "imagenet"
+    background_folder: str | None = None
 
     def __post_init__(self) -> None:
         # Normalised in place (the dataclass is frozen): equal recipes compare equal whatever types built them.
@@ -302,6 +398,7 @@ class ImageRecipe:
             "contrast": check_float("contrast", self.contrast, minimum=0.0, maximum=1.0),
             "saturation": check_float("saturation", self.saturation, minimum=0.0, maximum=1.0),
             "lighting_std": check_float("lighting_std", self.lighting_std, minimum=0.0),
+            "background_folder": _check_background_folder(self.background_folder),
         }
         for name in ("hflip", "permute_rgb", "clamp"):
             check_type(name, getattr(self, name), bool)
@@ -314,7 +411,8 @@ class ImageRecipe:
         """Whether training draws anything (then a training transform needs a key)."""
         varying = self.background_range is not None and any(lo != hi for lo, hi in self.background_range)
         jitter = self.brightness > 0 or self.contrast > 0 or self.saturation > 0
-        return varying or jitter or self.lighting_std > 0 or self.hflip or self.permute_rgb
+        folder = self.background_folder is not None
+        return varying or folder or jitter or self.lighting_std > 0 or self.hflip or self.permute_rgb
 
     def train_transform(self, image_size: int) -> ImageTransform:
         """The training transform: every op of the recipe, random ones drawn from a per-sample key."""
@@ -365,6 +463,7 @@ class _Draw:
     lighting: tuple[float, float, float]  # PCA weights
     channels: tuple[int, ...]  # RGB permutation
     flips: tuple[bool, ...]  # one per image
+    scenes: tuple[tuple[int, float, float], ...] = ()  # folder backgrounds: (image, row u, column v) per image
 
 
 class ImageTransform:
@@ -379,8 +478,9 @@ class ImageTransform:
         image_size: output side ``S`` in pixels.
         background: RGB background (0-255) composited under transparent pixels.
         normalize: one of :data:`NORMALIZATIONS`.
-        crop, background_range, brightness, contrast, saturation, lighting_std, hflip, permute_rgb, clamp:
-            as in :class:`ImageRecipe` (all but ``crop`` and ``clamp`` are random ops).
+        crop, background_range, brightness, contrast, saturation, lighting_std, hflip, permute_rgb, clamp,
+        background_folder: as in :class:`ImageRecipe` (all but ``crop`` and ``clamp`` are random ops). The
+            folder is scanned once, here (:class:`BackgroundFolder`).
 
     Call it on ``(H, W, 4)`` or ``(T, H, W, 4)`` uint8 arrays (the ``T`` views of one sample); returns
     ``(3, S, S)`` or ``(T, 3, S, S)`` float32.
@@ -404,6 +504,7 @@ class ImageTransform:
         hflip: bool = False,
         permute_rgb: bool = False,
         clamp: bool = True,
+        background_folder: str | os.PathLike | None = None,
     ) -> None:
         self.image_size = check_int("image_size", image_size, minimum=1)
         self.recipe = ImageRecipe(
@@ -418,7 +519,11 @@ class ImageTransform:
             permute_rgb=permute_rgb,
             clamp=clamp,
             normalize=normalize,
+            background_folder=background_folder,
         )
+        folder = self.recipe.background_folder
+        #: the scanned folder of training backgrounds, or None
+        self.backgrounds = BackgroundFolder(folder) if folder is not None else None
         self.background = self.recipe.background
         self.normalize = self.recipe.normalize
 
@@ -446,6 +551,15 @@ class ImageTransform:
         lighting = rng.standard_normal(3) * r.lighting_std
         channels = rng.permutation(3)
         flips = rng.random(num_images) < 0.5
+        scenes: tuple[tuple[int, float, float], ...] = ()
+        if self.backgrounds is not None:  # a stream of its own: the draws above stay as they were
+            scene_rng = np.random.default_rng([*(int(k) for k in key), _AUGMENTATION_STREAM, _BACKGROUND_STREAM])
+            picks = []
+            for _ in range(num_images):  # view t's draws do not depend on how many views follow
+                index = int(scene_rng.integers(len(self.backgrounds)))
+                u, v = scene_rng.random(2)
+                picks.append((index, float(u), float(v)))
+            scenes = tuple(picks)
         return _Draw(
             background=background,  # type: ignore[arg-type]
             factors=tuple(float(1.0 + j) for j in jitter),  # type: ignore[arg-type]
@@ -453,6 +567,7 @@ class ImageTransform:
             lighting=tuple(float(a) for a in lighting),  # type: ignore[arg-type]
             channels=tuple(int(c) for c in channels) if r.permute_rgb else (0, 1, 2),
             flips=tuple(bool(f) for f in flips) if r.hflip else (False,) * num_images,
+            scenes=scenes,
         )
 
     def __call__(self, rgba: np.ndarray, key: Sequence[int] | None = None) -> Tensor:
@@ -476,7 +591,12 @@ class ImageTransform:
         x = torch.from_numpy(np.ascontiguousarray(batch)).float() / 255.0  # (T, H, W, C)
         if x.shape[-1] == 4:
             alpha = x[..., 3:]
-            bg = torch.tensor(background, dtype=x.dtype) / 255.0
+            if draw is not None and draw.scenes:  # a crop of a folder image per view, the view's size
+                height, width = batch.shape[1:3]
+                crops = [self.backgrounds.crop(i, (u, v), height, width) for i, u, v in draw.scenes]  # type: ignore[union-attr]
+                bg = torch.from_numpy(np.stack(crops)).to(x.dtype) / 255.0  # (T, H, W, 3)
+            else:
+                bg = torch.tensor(background, dtype=x.dtype) / 255.0
             x = x[..., :3] * alpha + bg * (1.0 - alpha)
         x = x.permute(0, 3, 1, 2)
         if r.crop < 1.0:

@@ -237,9 +237,9 @@ class VoxelFScore(_PerObjectMean):
     the surfaces and sampling follow the ``"community"`` convention (What3D's code with the Open3D
     sampler of LegoFormer's published numbers); ``convention="centred"`` gives this package's
     first version, which reads up to about 0.05 lower on the same grids. Exactly one empty grid
-    scores 0, two empty grids 1. Each ``update`` samples with a
-    fresh generator seeded by ``seed``, so the metric equals the mean of the functional over the
-    same batches.
+    scores 0, two empty grids 1. Each object is sampled with a fresh generator seeded by ``seed``,
+    so its score does not depend on the batch it comes in: the metric is the mean of the functional
+    called on one object at a time, the same for any batch size and any number of processes.
 
     ``update(preds, target, categories=None)``: ``(B, R, R, R)`` tensors and optional names.
     ``compute()`` returns a scalar; :meth:`compute_per_category` returns ``{category: scalar}``.
@@ -286,8 +286,16 @@ class VoxelFScore(_PerObjectMean):
         super().__init__(1, categories, **kwargs)
 
     def update(self, preds: Tensor, target: Tensor, categories: Sequence[str] | None = None) -> None:
-        """Add the F-score of a batch of objects ``(B, R, R, R)``."""
-        scores = voxel_fscore(
+        """Add the F-score of a batch of objects ``(B, R, R, R)``, each sampled as if it came alone."""
+        if isinstance(preds, Tensor) and isinstance(target, Tensor) and preds.ndim == 4 and preds.shape == target.shape:
+            scores = [self._score(preds[i : i + 1], target[i : i + 1]) for i in range(preds.shape[0])]
+            self._accumulate(torch.cat(scores or [preds.new_zeros(0)]).unsqueeze(1), categories)
+        else:
+            # The functional raises, naming what is wrong with the input.
+            self._accumulate(self._score(preds, target).unsqueeze(1), categories)
+
+    def _score(self, preds: Tensor, target: Tensor) -> Tensor:
+        return voxel_fscore(
             preds,
             target,
             threshold=self.threshold,
@@ -296,7 +304,6 @@ class VoxelFScore(_PerObjectMean):
             convention=self.convention,
             seed=self.seed,
         )
-        self._accumulate(scores.unsqueeze(1), categories)
 
     def compute(self) -> Tensor:
         """Scalar mean F-score."""

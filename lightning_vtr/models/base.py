@@ -24,8 +24,11 @@ provides ``forward(images) -> dict`` (checks, then ``reconstruct``), ``predict_v
   a batch without it counts as Aligned).
 
 Metrics are accumulated in torchmetrics objects (one per view set, created up front) and synced
-across processes at epoch end. Per-category results need the category vocabulary to be identical
-on every process under DDP: pass ``categories`` or let :meth:`setup` take ``datamodule.categories``.
+across processes at epoch end. Under DDP every test object counts once: ``VTRDataModule`` shards the test
+set without padding, and :meth:`test_step` drops the repeats a padding ``DistributedSampler`` (Lightning's
+default for other loaders) adds, so test means equal one process's. Per-category results need the
+category vocabulary to be identical on every process under DDP: pass ``categories`` or let :meth:`setup`
+take ``datamodule.categories``.
 :func:`lightning_vtr.experiments.tables.results_from_test_output` turns ``trainer.test(...)`` output into
 the nested dict the paper-style table takes.
 
@@ -47,6 +50,7 @@ from typing import IO, TYPE_CHECKING, Any, ClassVar
 import lightning as L
 import torch
 from torch import Tensor, nn
+from torch.utils.data import DistributedSampler
 
 from lightning_vtr.metrics import VoxelFScore, VoxelIoU
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
@@ -129,6 +133,8 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
         self.val_metrics = metrics()
         self.test_metrics = nn.ModuleDict({name: metrics() for name in VIEW_SETS})
+        #: test dataloader index -> items of it this process has been given so far in the test epoch
+        self._test_items_seen: dict[int, int] = {}
 
     @_restricted_classmethod
     def load_from_checkpoint(
@@ -146,13 +152,76 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         Pretrained weight files named by the hyperparameters (``backbone_weights``, ...) are not read:
         the checkpoint's state dict replaces every weight anyway, and the file may not exist on this
         machine. Arguments are Lightning's (``weights_only`` needs Lightning >= 2.4).
+
+        Raises:
+            ValueError: ``checkpoint_path`` is a local checkpoint of another model class (e.g. an LRGT checkpoint
+                given to ``Pix2VoxPlusPlus``); the message names both classes and the path.
         """
+        cls._refuse_another_models_checkpoint(checkpoint_path)
         if weights_only is not None:
             kwargs["weights_only"] = weights_only
         with restoring_checkpoint():
             return super().load_from_checkpoint(
                 checkpoint_path, map_location=map_location, hparams_file=hparams_file, strict=strict, **kwargs
             )
+
+    @classmethod
+    def _refuse_another_models_checkpoint(cls, checkpoint_path: str | os.PathLike | IO) -> None:
+        """Raise ``ValueError`` when a local checkpoint file was saved from another model class.
+
+        The class is the one a LightningCLI checkpoint names (``_class_path``), else the package's model class
+        whose ``__init__`` takes every stored hyperparameter when ``cls`` does not (a hyperparameter ``cls`` lacks
+        alone may be an older release's name, so that is no proof). Streams, remote paths and files
+        ``torch.load(weights_only=True)`` cannot read are left to Lightning, as is a checkpoint of no known class.
+        """
+        import importlib
+        import inspect
+        import pickle
+
+        if not isinstance(checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
+            return
+        try:  # memory-mapped: the tensors are not read
+            checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True, mmap=True)
+        except (OSError, RuntimeError, ValueError, EOFError, AttributeError, pickle.UnpicklingError):
+            return
+        hparams = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
+        if not isinstance(hparams, dict):
+            return
+
+        def takes_all(model_cls: type) -> bool:
+            params = inspect.signature(model_cls.__init__).parameters.values()
+            if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+                return True
+            return {k for k in hparams if not str(k).startswith("_")} <= {p.name for p in params}
+
+        def subclasses(base: type) -> list[type]:
+            found = []
+            for sub in base.__subclasses__():
+                found += [sub, *subclasses(sub)]
+            return found
+
+        saved: type | str | None = None
+        class_path = hparams.get("_class_path")
+        if isinstance(class_path, str):
+            module, _, name = class_path.rpartition(".")
+            try:
+                saved = getattr(importlib.import_module(module), name)
+            except (ImportError, AttributeError, ValueError):
+                saved = class_path
+        elif not takes_all(cls):
+            importlib.import_module("lightning_vtr.models")  # the package's models are candidates once imported
+            candidates = [c for c in dict.fromkeys(subclasses(VoxelReconstructionModule)) if not inspect.isabstract(c)]
+            candidates.sort(key=lambda c: (not c.__module__.startswith("lightning_vtr."), c.__module__, c.__qualname__))
+            saved = next((c for c in candidates if takes_all(c) and not issubclass(c, cls)), None)
+        if saved is None or (isinstance(saved, type) and issubclass(saved, cls)):
+            return
+        name = saved.__name__ if isinstance(saved, type) else saved.rpartition(".")[2]
+        where = f"{saved.__module__}.{saved.__qualname__}" if isinstance(saved, type) else saved
+        raise ValueError(
+            f"{str(checkpoint_path)!r} is a checkpoint of {name} ({where}), not of {cls.__name__}: "
+            f"{cls.__name__}.load_from_checkpoint cannot load it. Use {name}.load_from_checkpoint(...) "
+            f"(`lightning-vtr predict --model {where}`)."
+        )
 
     # ------------------------------------------------------------------ what subclasses implement
     @abc.abstractmethod
@@ -257,13 +326,19 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
     def test_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> None:
         images, voxels = self._batch(batch)
-        probs = self(images)["voxels"].detach()
         view_sets = batch.get("view_set") or ["aligned"] * images.shape[0]
         if isinstance(view_sets, str) or len(view_sets) != images.shape[0]:
             raise ValueError(
                 f"`batch['view_set']` must list one view-set name per sample ({images.shape[0]}), got {view_sets!r}"
             )
         categories = batch.get("category")
+        keep = self._unpadded_test_items(images.shape[0], batch_idx, dataloader_idx)
+        if keep == 0:
+            return
+        if keep < images.shape[0]:
+            images, voxels, view_sets = images[:keep], voxels[:keep], view_sets[:keep]
+            categories = categories[:keep] if categories is not None else None
+        probs = self(images)["voxels"].detach()
         for name in dict.fromkeys(view_sets):
             check_choice("batch['view_set']", name, VIEW_SETS)
             index = [i for i, s in enumerate(view_sets) if s == name]
@@ -271,6 +346,46 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             cats = [categories[i] for i in index] if categories is not None else None
             for metric in self.test_metrics[name].values():
                 metric.update(probs.index_select(0, sel), voxels.index_select(0, sel), cats)
+
+    def on_test_epoch_start(self) -> None:
+        # Start from zero in this process's own memory: under ``ddp_spawn`` on CPU the processes receive the
+        # metric states in shared memory, so in-place updates would add every process's objects (and a later
+        # test in the launching process would start from their sum).
+        for group in self.test_metrics.values():
+            for metric in group.values():
+                metric.reset()
+        self._test_items_seen = {}
+
+    def _unpadded_test_items(self, batch_size: int, batch_idx: int, dataloader_idx: int) -> int:
+        """How many leading items of a test batch are this process's share of the dataset, not padding.
+
+        Under DDP Lightning's default :class:`~torch.utils.data.DistributedSampler` (``drop_last=False``) appends
+        repeats of the first items to its index list until it divides among the ``n`` processes, and hands
+        position ``p`` of the list to rank ``p % n``. The repeats therefore are the last items of each shard:
+        rank ``r`` owns only the first ``len(range(r, N, n))`` of its items. Counting them keeps every test object
+        once in the means whatever loader the model is tested with (``VTRDataModule`` does not pad at all).
+        """
+        seen = 0 if batch_idx == 0 else self._test_items_seen.get(dataloader_idx, 0)
+        self._test_items_seen[dataloader_idx] = seen + batch_size
+        sampler = self._test_sampler(dataloader_idx)
+        if sampler is None or sampler.total_size <= len(sampler.dataset):
+            return batch_size  # no padding: one process, an unpadded sampler, or drop_last
+        owned = len(range(sampler.rank, len(sampler.dataset), sampler.num_replicas))
+        return max(0, min(batch_size, owned - seen))
+
+    def _test_sampler(self, dataloader_idx: int) -> DistributedSampler | None:
+        """The distributed sampler of test dataloader ``dataloader_idx``, if it has one."""
+        if self._trainer is None:  # a step called by hand (Lightning's own properties test `_trainer` likewise)
+            return None
+        loaders = self.trainer.test_dataloaders
+        if isinstance(loaders, dict):
+            loaders = list(loaders.values())
+        elif not isinstance(loaders, (list, tuple)):
+            loaders = [loaders]
+        if dataloader_idx >= len(loaders):
+            return None
+        sampler = getattr(loaders[dataloader_idx], "sampler", None)
+        return sampler if isinstance(sampler, DistributedSampler) else None
 
     def on_test_epoch_end(self) -> None:
         for name, group in self.test_metrics.items():

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import trimesh
 
-from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+from lightning_vtr.synthesis.base import FIX_HINT, SynthesisRequest, Synthesizer, record_location
 from lightning_vtr.utils.validation import check_int
 
 __all__ = ["RenderSynthesizer"]
@@ -28,8 +29,9 @@ class RenderSynthesizer(Synthesizer):
 
     Raises:
         TypeError: ``image_size`` or ``max_cached_meshes`` is not an int.
-        ValueError: ``image_size < 1`` or ``max_cached_meshes < 0``; at synthesis time, for a request
-            without a mesh path (naming the object).
+        ValueError: ``image_size < 1`` or ``max_cached_meshes < 0``; in :meth:`check_serves` (the callback's
+            ``setup``), for a dataset whose objects have no mesh; at synthesis time, for a request without a
+            mesh path (naming the object).
     """
 
     needs_source_images = False
@@ -53,6 +55,17 @@ class RenderSynthesizer(Synthesizer):
         while len(self._meshes) > self.max_cached_meshes:
             self._meshes.popitem(last=False)
         return mesh
+
+    def check_serves(self, records: Sequence[Any], *, view_set: str | None = None) -> None:
+        """Refuse objects without a mesh (``record.mesh_path is None``), e.g. every object of the
+        ShapeNetRendering layout, which has images and voxels only; the message names the first and the fix."""
+        lacking = [r for r in records if getattr(r, "mesh_path", None) is None]
+        if lacking:
+            raise ValueError(
+                f"{type(self).__name__} renders each object's mesh, but {len(lacking)} of {len(records)} training "
+                f"objects have none (first: {record_location(lacking[0])}); datasets in the ShapeNetRendering "
+                f"layout have images and voxels only. {FIX_HINT}"
+            )
 
     def synthesize(self, requests: list[SynthesisRequest]) -> list[np.ndarray]:
         from lightning_vtr.renderer import get_renderer

@@ -12,11 +12,13 @@ from collections.abc import Collection
 from typing import Any
 
 import numpy as np
+import torch
 
 __all__ = [
     "check_choice",
     "check_float",
     "check_int",
+    "check_probabilities",
     "check_range",
     "check_type",
 ]
@@ -93,6 +95,28 @@ def check_range(name: str, value: Any, low: float, high: float, unit: str = "") 
     if not (low <= lo <= hi <= high):
         raise ValueError(f"`{name}` must satisfy {low:g} <= low <= high <= {high:g}{suffix}, got {value!r}")
     return lo, hi
+
+
+def check_probabilities(name: str, values: torch.Tensor, hint: str = "") -> torch.Tensor:
+    """``values`` if every element is a finite number in ``[0, 1]``; else ``ValueError`` naming ``name``, the
+    observed range of the finite values and the count of non-finite ones, followed by ``hint``.
+
+    Example::
+
+        >>> check_probabilities("predict_voxels", torch.tensor([0.2, 1.7]))
+        Traceback (most recent call last):
+        ...
+        ValueError: `predict_voxels` must return probabilities in [0, 1], got values in [0.2, 1.7] (0 non-finite of 2)
+    """
+    values = check_type(name, values, torch.Tensor, "torch.Tensor")
+    finite = torch.isfinite(values)
+    bad = int(values.numel() - finite.sum().item())
+    kept = values[finite]
+    if bad == 0 and (kept.numel() == 0 or (kept.min() >= 0 and kept.max() <= 1)):
+        return values
+    seen = f"values in [{kept.min().item():.4g}, {kept.max().item():.4g}]" if kept.numel() else "no finite values"
+    message = f"`{name}` must return probabilities in [0, 1], got {seen} ({bad} non-finite of {values.numel()})"
+    raise ValueError(f"{message}{'; ' + hint if hint else ''}")
 
 
 def _check_bounds(

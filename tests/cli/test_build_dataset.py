@@ -134,3 +134,39 @@ def test_cli_errors(tmp_path, capsys):
     assert "build-dataset" in capsys.readouterr().err
     assert main(["build-dataset", str(tmp_path / "x"), "--finalize"]) == 2
     assert "build_config.json" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ Pix3D protocol (issue 17)
+
+
+def test_pix3d_protocol_flags_reach_the_builder(builds, tmp_path):
+    argv = ["build-dataset", str(tmp_path), "--protocol", "pix3d", "--views-per-object", "60", "--categories", "chair"]
+    assert main([*argv, "--pitch-range=-5,35", "--no-progress"]) == 0  # "=": the value starts with "-"
+    _, kwargs = builds[-1]
+    assert kwargs["protocol"] == "pix3d" and kwargs["views_per_object"] == 60 and kwargs["pitch_range"] == (-5.0, 35.0)
+    assert kwargs["categories"] == ["chair"] and "views_per_set" not in kwargs
+    assert main(["build-dataset", str(tmp_path), "--no-progress"]) == 0
+    assert not {"protocol", "views_per_object", "pitch_range"} & set(builds[-1][1])  # not given: builder defaults
+
+
+def test_pix3d_flag_errors(builds, capsys, tmp_path):
+    for bad in ("40,0", "0", "a,b", "-100,0"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["build-dataset", str(tmp_path), "--protocol", "pix3d", f"--pitch-range={bad}"])
+        assert exit_info.value.code == 2 and "--pitch-range" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["build-dataset", str(tmp_path), "--protocol", "pix2d"])
+    assert exit_info.value.code == 2 and "invalid choice: 'pix2d'" in capsys.readouterr().err
+    assert builds == []
+
+
+def test_cli_pix3d_build(tmp_path, capsys):
+    out = tmp_path / "pix3d"
+    args = ["build-dataset", str(out), "--protocol", "pix3d", "--views-per-object", "3", "--categories", "chair"]
+    assert main([*args, "--objects-per-category", "2", "--image-size", "16", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "built 2" in printed and "3 views per set ['pix3d']" in printed
+    assert sorted(p.name for p in out.rglob("*.png")) == ["00.png", "00.png", "01.png", "01.png", "02.png", "02.png"]
+    assert main(["build-dataset", str(tmp_path / "vtr"), "--views-per-object", "3"]) == 2
+    assert "`views_per_object` applies to protocol='pix3d' only" in capsys.readouterr().err
+    assert not (tmp_path / "vtr").exists()

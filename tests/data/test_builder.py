@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from lightning_vtr.data.binvox import read_binvox
@@ -248,3 +249,127 @@ def test_two_workers_build_the_same_dataset(tmp_path, small):
     report = build_dataset(root, **SMALL, workers=2)
     assert report.finalized and len(report.built) == 6
     assert load_metadata(root)["objects"] == load_metadata(small[0])["objects"]
+
+
+# ------------------------------------------------------------------------------------------ Pix3D protocol (issue 17)
+
+PIX3D = dict(
+    protocol="pix3d", categories=["chair"], objects_per_category=2, views_per_object=4, image_size=16, progress=False
+)
+
+
+def test_pix3d_viewpoints_are_seeded_uniform_yaw_and_moderate_pitch():
+    from lightning_vtr.data.builder import PIX3D_PITCH_RANGE, pix3d_viewpoints
+
+    assert PIX3D_PITCH_RANGE == (0.0, 40.0)
+    a = pix3d_viewpoints("chair", "chair_0000", views_per_object=60, seed=0)
+    assert a.shape == (60, 2) and a.dtype == np.float64
+    np.testing.assert_array_equal(a, pix3d_viewpoints("chair", "chair_0000", views_per_object=60, seed=0))
+    assert not np.allclose(a, pix3d_viewpoints("chair", "chair_0001", views_per_object=60, seed=0))
+    assert not np.allclose(a, pix3d_viewpoints("chair", "chair_0000", views_per_object=60, seed=1))
+    big = pix3d_viewpoints("chair", "chair_0000", views_per_object=20000)
+    yaw, pitch = big[:, 0], big[:, 1]
+    assert yaw.min() >= -180 and yaw.max() < 180 and pitch.min() >= 0 and pitch.max() <= 40
+    # Uniform in both angles: yaw quadrants equally full, pitch mean 20 and variance 40^2 / 12.
+    counts = np.histogram(yaw, bins=4, range=(-180, 180))[0] / len(yaw)
+    np.testing.assert_allclose(counts, 0.25, atol=0.02)
+    assert pitch.mean() == pytest.approx(20.0, abs=0.5) and pitch.var() == pytest.approx(1600 / 12, rel=0.05)
+    low = pix3d_viewpoints("chair", "chair_0000", views_per_object=500, pitch_range=(-10.0, 5.0))
+    assert low[:, 1].min() >= -10 and low[:, 1].max() <= 5 and low[:, 1].min() < -8 and low[:, 1].max() > 3
+    # Another stream than the VTR view sets of the same object.
+    vtr = view_set_viewpoints("chair", "chair_0000", views_per_set=60)
+    assert not any(np.allclose(a[:, 0], vtr[name][:, 0]) for name in vtr)
+
+
+def test_pix3d_build_writes_n_views_per_object_readable_by_the_reader(tmp_path):
+    from PIL import Image
+
+    from lightning_vtr.data.builder import pix3d_viewpoints
+    from lightning_vtr.data.dataset import VTRDataset
+
+    root = tmp_path / "pix3d"
+    report = build_dataset(root, **PIX3D)
+    assert report.finalized and sorted(report.built) == ["chair/chair_0000", "chair/chair_0001"] and not report.failed
+    pngs = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.png"))
+    assert pngs == [f"objects/chair/chair_000{o}/pix3d/0{i}.png" for o in range(2) for i in range(4)]
+    for o in range(2):  # only the pix3d set: no aligned / hemispherical / spherical folders
+        d = object_dir(root, "chair", f"chair_000{o}")
+        assert sorted(p.name for p in d.iterdir()) == ["mesh.ply", "model.binvox", "object.json", "pix3d"]
+    meta = load_metadata(root)
+    assert meta["protocol"] == "pix3d" and meta["view_sets"] == ["pix3d"]
+    assert meta["views_per_set"] == 4 and meta["views_per_object"] == 4 and meta["pitch_range"] == [0.0, 40.0]
+    assert meta["sampling"] == {"pix3d": "yaw uniform in [-180, 180), pitch uniform in [0, 40]"}
+    for key, info in meta["objects"].items():
+        category, oid = key.split("/")
+        assert list(info["views"]) == ["pix3d"]
+        recorded = np.asarray(info["views"]["pix3d"])
+        assert recorded.shape == (4, 2)
+        assert np.all((recorded[:, 0] >= -180) & (recorded[:, 0] < 180))
+        assert np.all((recorded[:, 1] >= 0) & (recorded[:, 1] <= 40))
+        np.testing.assert_allclose(recorded, pix3d_viewpoints(category, oid, views_per_object=4), atol=1e-6)
+    records = scan_dataset(root, check_files=True)  # the existing reader
+    assert [len(r.views["pix3d"][0]) for r in records] == [4, 4] and all(r.mesh_path for r in records)
+    item = VTRDataset(records, "pix3d", num_views=2)[0]
+    assert tuple(item["images"].shape) == (2, 3, 224, 224)
+    alpha = np.asarray(Image.open(records[0].views["pix3d"][0][0]))[..., 3]
+    assert alpha.shape == (16, 16) and 0 < (alpha > 0).mean() < 1  # an object on a transparent background
+    # Deterministic: a second build (in two shards, finalized separately) writes the same bytes.
+    again = tmp_path / "again"
+    build_dataset(again, **PIX3D, shard=(0, 2), finalize=False)
+    build_dataset(again, **PIX3D, shard=(1, 2), finalize=False)
+    assert finalize_dataset(again).finalized
+    assert load_metadata(again)["objects"] == meta["objects"]
+    assert load_metadata(again)["view_sets"] == ["pix3d"]
+    for png in pngs:
+        assert (again / png).read_bytes() == (root / png).read_bytes()
+    # A re-run skips everything; a VTR build into the same directory is refused.
+    assert len(build_dataset(root, **PIX3D).skipped) == 2
+    vtr = dict(categories=["chair"], objects_per_category=2, image_size=16, views_per_set=4, progress=False)
+    with pytest.raises(ValueError, match="pitch_range: .0.0, 40.0. on disk vs None now, protocol: 'pix3d' on disk"):
+        build_dataset(root, **vtr)
+
+
+def test_pix3d_protocol_arguments_are_checked(tmp_path):
+    with pytest.raises(ValueError, match=r"`protocol` must be one of 'vtr', 'pix3d', got 'pix4d'"):
+        build_dataset(tmp_path, protocol="pix4d")
+    with pytest.raises(
+        ValueError, match=r"`views_per_object` applies to protocol='pix3d' only .* got views_per_object=60"
+    ):
+        build_dataset(tmp_path, views_per_object=60)
+    with pytest.raises(ValueError, match=r"`pitch_range` applies to protocol='pix3d' only"):
+        build_dataset(tmp_path, pitch_range=(0, 30))
+    with pytest.raises(ValueError, match=r"`views_per_set` applies to protocol='vtr' only.* got views_per_set=8"):
+        build_dataset(tmp_path, protocol="pix3d", views_per_set=8)
+    with pytest.raises(ValueError, match=r"`views_per_object` must be an int in \[1, 100\], got 101"):
+        build_dataset(tmp_path, protocol="pix3d", views_per_object=101)
+    with pytest.raises(ValueError, match=r"`pitch_range` must be \(low, high\) with low <= high, got \(40.0, 0.0\)"):
+        build_dataset(tmp_path, protocol="pix3d", pitch_range=(40, 0))
+    with pytest.raises(ValueError, match=r"`pitch_range\[1\]` must be"):
+        build_dataset(tmp_path, protocol="pix3d", pitch_range=(0, 100))
+    with pytest.raises(TypeError, match=r"`pitch_range` must be a pair of numbers \(low, high\) in degrees, got 30"):
+        build_dataset(tmp_path, protocol="pix3d", pitch_range=30)
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_pix3d_build_trains_through_the_datamodule_with_train_view_set(tmp_path):
+    from lightning_vtr.data import VTRDataModule
+    from lightning_vtr.data.dataset import VTRDataset
+
+    root = tmp_path / "pix3d"
+    build_dataset(root, **{**PIX3D, "objects_per_category": 10})
+    dm = VTRDataModule(root, train_view_set="pix3d", num_views=2, image_size=16, batch_size=2)
+    dm.setup("fit")
+    train = dm.split_records("train")
+    assert train and dm.split_records("val")
+    served = dm.train_dataset()
+    expected = VTRDataset(train, "pix3d", num_views=2, transform=dm.train_transform, train=True, seed=dm.seed)
+    expected.set_epoch(0)
+    assert len(served) == len(train)
+    for i in range(len(train)):
+        assert served[i]["object_id"] == train[i].object_id
+        assert torch.equal(served[i]["images"], expected[i]["images"])
+    assert next(iter(dm.train_dataloader()))["images"].shape == (2, 2, 3, 16, 16)
+    val = dm.split_records("val")
+    assert next(iter(dm.val_dataloader()))["images"].shape == (min(2, len(val)), 2, 3, 16, 16)
+    with pytest.raises(KeyError, match="has no view set 'aligned'"):
+        VTRDataModule(root, num_views=2, image_size=16).train_dataloader()

@@ -36,13 +36,31 @@ def test_iou_class_is_mean_of_functional_and_per_category():
     assert metric.category_count.shape == (3,) and metric.category_count.sum() == 0
 
 
-def test_fscore_class_is_mean_of_functional():
+def _one_at_a_time(p, g, **kw):
+    return torch.cat([voxel_fscore(p[i : i + 1], g[i : i + 1], **kw) for i in range(p.shape[0])])
+
+
+def test_fscore_class_is_mean_of_functional_on_one_object_at_a_time():
     metric = VoxelFScore(num_points=256, seed=5)
     scores = []
     for p, g in _batches():
         metric.update(p, g)
-        scores.append(voxel_fscore(p, g, num_points=256, seed=5))
+        scores.append(_one_at_a_time(p, g, num_points=256, seed=5))
     assert metric.compute().item() == pytest.approx(torch.cat(scores).mean().item(), abs=1e-6)
+
+
+def test_fscore_class_does_not_depend_on_how_objects_are_batched():
+    # The same five objects as one batch of 5, as batches of 2 + 3, and one by one (what DDP shards change).
+    p, g = (torch.cat(t) for t in zip(*_batches()))
+    together, split, alone = (VoxelFScore(num_points=256, seed=5) for _ in range(3))
+    together.update(p, g)
+    split.update(p[:2], g[:2])
+    split.update(p[2:], g[2:])
+    for i in range(5):
+        alone.update(p[i : i + 1], g[i : i + 1])
+    assert together.compute().item() == split.compute().item() == alone.compute().item()
+    # One generator for the whole batch (the functional's form) draws other points for objects 2-5.
+    assert voxel_fscore(p, g, num_points=256, seed=5).mean().item() != together.compute().item()
 
 
 @pytest.mark.parametrize("convention", ["community", "centred"])
@@ -51,7 +69,7 @@ def test_fscore_class_passes_convention(convention):
     scores = []
     for p, g in _batches():
         metric.update(p, g)
-        scores.append(voxel_fscore(p, g, num_points=256, seed=5, convention=convention))
+        scores.append(_one_at_a_time(p, g, num_points=256, seed=5, convention=convention))
     assert metric.convention == convention
     assert metric.compute().item() == pytest.approx(torch.cat(scores).mean().item(), abs=1e-6)
 

@@ -1,0 +1,348 @@
+"""Check a ShapeNet-VTR directory before a long run: read every image and voxel file once, in parallel, and
+list every file that is missing, unreadable or disagrees with ``metadata.json``.
+
+A truncated PNG otherwise surfaces as ``OSError: Cannot read image ...`` at the first epoch that draws it,
+possibly hours into a run. :func:`verify_dataset` decodes every image in full with Pillow, as the loaders'
+:func:`~lightning_vtr.data.dataset.load_rgba` does, and every voxel file with
+:func:`~lightning_vtr.data.binvox.read_binvox`, so a dataset it passes is one the loaders can read.
+``lightning-vtr dataset-info ROOT --verify`` and ``VTRDataModule(verify=True)`` call it.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Iterator, Mapping
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+from tqdm.auto import tqdm
+
+from lightning_vtr.data.binvox import read_binvox
+from lightning_vtr.data.format import SPLITS, image_path, load_metadata, object_dir
+from lightning_vtr.utils.validation import check_int
+
+__all__ = ["PROBLEM_KINDS", "DatasetProblem", "VerifyReport", "verify_dataset"]
+
+#: What a :class:`DatasetProblem` can be about, in the order a file is checked.
+PROBLEM_KINDS: tuple[str, ...] = ("metadata", "missing", "unreadable", "image_size", "view_count", "voxel_resolution")
+
+#: Problems an error message lists before it says how many more there are.
+_LISTED_PROBLEMS = 20
+
+
+@dataclass(frozen=True)
+class DatasetProblem:
+    """One file that a training run would fail on or silently misread.
+
+    Attributes:
+        path: the file (or directory) at fault.
+        kind: one of :data:`PROBLEM_KINDS`.
+        message: what is wrong with it.
+        expected: the value ``metadata.json`` implies (``None`` when there is no single value).
+        actual: the value found.
+    """
+
+    path: Path
+    kind: str
+    message: str
+    expected: Any = None
+    actual: Any = None
+
+    def __str__(self) -> str:
+        values = f" (expected {self.expected}, got {self.actual})" if self.expected is not None else ""
+        return f"{self.path}: {self.message}{values}"
+
+
+@dataclass
+class VerifyReport:
+    """What :func:`verify_dataset` found.
+
+    Attributes:
+        root: the dataset directory.
+        objects: objects checked (every entry of ``metadata.json["objects"]``).
+        files: image and voxel files read.
+        problems: every problem found, in the order of ``metadata.json``.
+        seconds: wall time of the check.
+    """
+
+    root: Path
+    objects: int = 0
+    files: int = 0
+    problems: list[DatasetProblem] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """Whether no problem was found."""
+        return not self.problems
+
+    @property
+    def objects_per_second(self) -> float:
+        """Objects checked per second of wall time."""
+        return self.objects / self.seconds if self.seconds > 0 else float("inf")
+
+    def summary(self) -> str:
+        """One line: objects and files checked, problems found, speed."""
+        return (
+            f"verified {self.objects} objects ({self.files} files) in {self.seconds:.1f} s "
+            f"({self.objects_per_second:.1f} objects/s): {len(self.problems)} problem(s)"
+        )
+
+    def error_message(self, limit: int = _LISTED_PROBLEMS) -> str:
+        """A message listing the first ``limit`` problems and how many more there are (for an exception)."""
+        lines = [f"Verifying the dataset at {self.root} found {len(self.problems)} problem(s):"]
+        lines += [f"  {problem}" for problem in self.problems[:limit]]
+        if len(self.problems) > limit:
+            lines.append(
+                f"  ... and {len(self.problems) - limit} more; `lightning-vtr dataset-info {self.root} --verify` "
+                "lists them all"
+            )
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class _Expected:
+    """What every object of the dataset must match, from ``metadata.json``."""
+
+    root: Path
+    metadata: Path
+    image_size: int
+    resolution: int
+    view_sets: tuple[str, ...]
+    views_per_set: int | None
+
+
+def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bool = True) -> VerifyReport:
+    """Read every image and voxel file of a ShapeNet-VTR dataset once and list what is wrong.
+
+    Checked per object of ``metadata.json``: its directory and ``model.binvox`` exist; the voxel file decodes
+    to ``R x R x R`` with ``R = metadata["resolution"]``; every view set of ``metadata["view_sets"]`` lists
+    ``metadata["views_per_set"]`` viewpoints and its directory holds exactly those images, ``00.png`` ..;
+    every image decodes and is ``image_size x image_size``. Each problem names the file and, where there is
+    one, the expected and the actual value.
+
+    Args:
+        root: the dataset directory.
+        workers: processes reading files in parallel (``1``: this process alone); ``None``: one per CPU this
+            process may run on. Decoding is mostly Python-bound, so processes, not threads, scale it. Workers
+            are forked (they import nothing); where ``fork`` does not exist they are threads.
+        progress: show a tqdm progress bar (one step per object).
+
+    Returns:
+        A :class:`VerifyReport`; ``report.ok`` when nothing is wrong.
+
+    Raises:
+        DatasetFormatError: ``metadata.json`` is missing or invalid (nothing else can be checked then).
+        ValueError: ``workers`` is not a positive int.
+
+    Example:
+        >>> report = verify_dataset("/data/shapenet_vtr", progress=False)  # doctest: +SKIP
+        >>> report.ok, report.objects, report.files  # doctest: +SKIP
+        (True, 39000, 2847000)
+    """
+    # 1. check inputs and read what every object must match
+    if workers is not None:
+        check_int("workers", workers, minimum=1)
+    start = time.perf_counter()
+    root = Path(root)
+    meta = load_metadata(root)
+    views_per_set = meta.get("views_per_set")
+    expected = _Expected(
+        root=root,
+        metadata=root / "metadata.json",
+        image_size=int(meta["image_size"]),
+        resolution=int(meta["resolution"]),
+        view_sets=tuple(meta["view_sets"]),
+        views_per_set=int(views_per_set) if views_per_set is not None else None,
+    )
+    objects = list(meta["objects"].items())
+
+    # 2. check the objects in parallel, in metadata order
+    report = VerifyReport(root=root, objects=len(objects))
+    bar = tqdm(total=len(objects), desc=f"verifying {root.name}", unit="obj", disable=not progress, dynamic_ncols=True)
+    for problems, files in _map_objects(expected, objects, workers or _usable_cpus()):
+        report.problems.extend(problems)
+        report.files += files
+        bar.update()
+    bar.close()
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+def _usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one, e.g. under a job scheduler)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+def _map_objects(
+    expected: _Expected, objects: list[tuple[str, Any]], workers: int
+) -> Iterator[tuple[list[DatasetProblem], int]]:
+    """:func:`_check_object` of every object, in order, on ``workers`` processes (threads without ``fork``)."""
+    check = partial(_check_object, expected)
+    keys, infos = [key for key, _ in objects], [info for _, info in objects]
+    workers = min(workers, len(objects))
+    if workers <= 1:
+        yield from map(check, keys, infos)
+        return
+    # "fork": a spawned worker would import torch (seconds) and re-run an unguarded __main__ script.
+    if "fork" in mp.get_all_start_methods():
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"))
+    else:  # pragma: no cover - Windows
+        pool = ThreadPoolExecutor(max_workers=workers)
+    with pool:
+        # Chunks of a few objects: per-object messages would cost more than the check on small images.
+        chunksize = max(1, min(16, len(objects) // (workers * 8)))
+        yield from pool.map(check, keys, infos, chunksize=chunksize)
+
+
+def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[DatasetProblem], int]:
+    """The problems of one object of ``metadata.json`` and the number of files read."""
+    problems: list[DatasetProblem] = []
+    category, sep, object_id = key.partition("/")
+    if not sep or not category or not object_id or not isinstance(info, Mapping):
+        problems.append(
+            DatasetProblem(
+                expected.metadata,
+                "metadata",
+                f"object entry {key!r} is not '<category>/<object_id>' with a dict of fields",
+            )
+        )
+        return problems, 0
+    if info.get("split") not in SPLITS:
+        problems.append(
+            DatasetProblem(
+                expected.metadata, "metadata", f"object {key!r} has an unknown split", list(SPLITS), info.get("split")
+            )
+        )
+    directory = object_dir(expected.root, category, object_id)
+    if not directory.is_dir():
+        problems.append(
+            DatasetProblem(directory, "missing", f"metadata.json lists object {key!r} but its directory does not exist")
+        )
+        return problems, 0
+    voxel_path = directory / "model.binvox"
+    files = int(voxel_path.is_file())
+    voxel_problem = _check_voxels(voxel_path, expected.resolution)
+    if voxel_problem is not None:
+        problems.append(voxel_problem)
+    views = info.get("views")
+    for view_set in expected.view_sets:
+        if not isinstance(views, Mapping) or view_set not in views:
+            problems.append(
+                DatasetProblem(expected.metadata, "metadata", f"object {key!r} lists no view set {view_set!r}")
+            )
+            continue
+        set_problems, set_files = _check_view_set(directory, view_set, views[view_set], key, expected)
+        problems += set_problems
+        files += set_files
+    return problems, files
+
+
+def _check_voxels(path: Path, resolution: int) -> DatasetProblem | None:
+    """The problem of one voxel file, if any."""
+    if not path.is_file():
+        return DatasetProblem(path, "missing", "the object's voxel file does not exist")
+    try:
+        voxels = read_binvox(path)
+    except (OSError, ValueError) as err:
+        return DatasetProblem(path, "unreadable", f"cannot read the voxel file: {err}")
+    if voxels.shape != (resolution,) * 3:
+        return DatasetProblem(
+            path,
+            "voxel_resolution",
+            "voxel grid of the wrong resolution",
+            "x".join([str(resolution)] * 3),
+            "x".join(map(str, voxels.shape)),
+        )
+    return None
+
+
+def _check_view_set(
+    directory: Path, view_set: str, viewpoints: Any, key: str, expected: _Expected
+) -> tuple[list[DatasetProblem], int]:
+    """The problems of one view set of one object and the number of images read."""
+    problems: list[DatasetProblem] = []
+    try:
+        listed = np.asarray(viewpoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        listed = np.zeros((0, 0))
+    if listed.ndim != 2 or listed.shape[1] != 2 or not np.isfinite(listed).all():
+        problems.append(
+            DatasetProblem(
+                expected.metadata,
+                "metadata",
+                f"view set {view_set!r} of object {key!r} is not a list of finite [yaw, pitch] pairs (shape {listed.shape})",
+            )
+        )
+        return problems, 0
+    count = listed.shape[0]
+    set_dir = directory / view_set
+    if expected.views_per_set is not None and count != expected.views_per_set:
+        problems.append(
+            DatasetProblem(
+                set_dir,
+                "view_count",
+                f"metadata.json lists {count} viewpoints for this view set",
+                expected.views_per_set,
+                count,
+            )
+        )
+    if not set_dir.is_dir():
+        problems.append(DatasetProblem(set_dir, "missing", f"view set {view_set!r} of object {key!r} does not exist"))
+        return problems, 0
+    listed_paths = [image_path(directory, view_set, i) for i in range(count)]
+    on_disk = {p.name for p in set_dir.glob("*.png")}
+    for path in listed_paths:
+        if path.name not in on_disk:
+            problems.append(
+                DatasetProblem(
+                    path,
+                    "view_count",
+                    f"view {path.stem} of {count} listed in metadata.json is missing; the view set has "
+                    f"{len(on_disk)} images",
+                    count,
+                    len(on_disk),
+                )
+            )
+    for name in sorted(on_disk - {p.name for p in listed_paths}):
+        problems.append(
+            DatasetProblem(
+                set_dir / name,
+                "view_count",
+                f"image not listed in metadata.json (which lists {count} views); the view set has {len(on_disk)} images",
+                count,
+                len(on_disk),
+            )
+        )
+    files = 0
+    for path in listed_paths:
+        if path.name in on_disk:
+            files += 1
+            problem = _check_image(path, expected.image_size)
+            if problem is not None:
+                problems.append(problem)
+    return problems, files
+
+
+def _check_image(path: Path, size: int) -> DatasetProblem | None:
+    """The problem of one image, if any: decoded in full, as the training loader decodes it."""
+    try:
+        with Image.open(path) as image:
+            image.load()
+            width, height = image.size
+    except Exception as err:  # whatever a decoder raises (Pillow has many kinds), the file is what is wrong
+        return DatasetProblem(path, "unreadable", f"cannot read the image: {err}")
+    if (height, width) != (size, size):
+        return DatasetProblem(
+            path, "image_size", "image of the wrong size (W x H)", f"{size}x{size}", f"{width}x{height}"
+        )
+    return None
