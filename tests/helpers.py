@@ -32,6 +32,7 @@ __all__ = [
     "make_datamodule",
     "make_trainer",
     "one_thread",
+    "write_rendering_layout",
 ]
 
 
@@ -183,3 +184,33 @@ def assert_same_training_state(a: L.Trainer, b: L.Trainer) -> None:
                 assert same, f"optimizer state {index}/{name} differs"
     schedulers = [[c.scheduler.state_dict() for c in t.lr_scheduler_configs] for t in (a, b)]
     assert schedulers[0] == schedulers[1]
+
+
+def write_rendering_layout(
+    root: Path, splits: dict[str, str], image: np.ndarray, voxels: np.ndarray, views: int = 4
+) -> dict[str, str]:
+    """Write a 3D-R2N2 / ShapeNetRendering-layout chair dataset (images and voxels, no meshes) under ``root``.
+
+    Args:
+        splits: model id -> split (``"train"``, ``"val"`` or ``"test"``).
+        image: the ``(H, W, 4)`` uint8 RGBA render every view gets.
+        voxels: the ``(32, 32, 32)`` bool grid every model gets.
+
+    Returns:
+        ``VTRDataModule``'s ``shapenet_rendering`` argument for it.
+    """
+    from lightning_vtr.data.binvox import write_binvox
+
+    render_root, vox_root = root / "ShapeNetRendering", root / "ShapeNetVox32"
+    for model in splits:
+        rdir = render_root / "03001627" / model / "rendering"
+        rdir.mkdir(parents=True)
+        (rdir / "rendering_metadata.txt").write_text("".join(f"{90 * i} 30 0 0.8 25\n" for i in range(views)))
+        for i in range(views):
+            Image.fromarray(image).save(rdir / f"{i:02d}.png")
+        (vox_root / "03001627" / model).mkdir(parents=True)
+        write_binvox(vox_root / "03001627" / model / "model.binvox", voxels)
+    by_split = {s: [m for m, ms in splits.items() if ms == s] for s in ("train", "val", "test")}
+    split_file = root / "split.json"
+    split_file.write_text(json.dumps([{"taxonomy_id": "03001627", "taxonomy_name": "chair", **by_split}]))
+    return {"rendering_root": str(render_root), "voxel_root": str(vox_root), "split_file": str(split_file)}

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 import pytest
 import torch
+from helpers import write_rendering_layout
 from PIL import Image
 
-from lightning_vtr.data.binvox import write_binvox
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.transforms import IMAGE_RECIPES, BackgroundFolder, ImageRecipe, ImageTransform
 
@@ -199,21 +198,10 @@ OBJECT_COLOUR = (200, 10, 50)
 def rendering_layout(tmp_path):
     """A ShapeNetRendering-layout dataset of 8x8 RGBA renders (left half opaque, right half transparent):
     one train, one val and one test chair with 4 views each."""
-    render_root, vox_root = tmp_path / "ShapeNetRendering", tmp_path / "ShapeNetVox32"
-    models = {"train": "chairT", "val": "chairV", "test": "chairX"}
     image = np.zeros((8, 8, 4), dtype=np.uint8)
     image[:, :4] = (*OBJECT_COLOUR, 255)
-    for model in models.values():
-        rdir = render_root / "03001627" / model / "rendering"
-        rdir.mkdir(parents=True)
-        (rdir / "rendering_metadata.txt").write_text("".join(f"{90 * i} 30 0 0.8 25\n" for i in range(4)))
-        for i in range(4):
-            Image.fromarray(image).save(rdir / f"{i:02d}.png")
-        (vox_root / "03001627" / model).mkdir(parents=True)
-        write_binvox(vox_root / "03001627" / model / "model.binvox", np.ones((32, 32, 32), dtype=bool))
-    split = [{"taxonomy_id": "03001627", "taxonomy_name": "chair", **{s: [m] for s, m in models.items()}}]
-    (tmp_path / "split.json").write_text(json.dumps(split))
-    return {"rendering_root": str(render_root), "voxel_root": str(vox_root), "split_file": str(tmp_path / "split.json")}
+    splits = {"chairT": "train", "chairV": "val", "chairX": "test"}
+    return write_rendering_layout(tmp_path, splits, image, np.ones((32, 32, 32), dtype=bool))
 
 
 def test_datamodule_composites_training_views_and_keeps_eval_background(tmp_path, rendering_layout):

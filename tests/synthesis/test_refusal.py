@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
-from helpers import TinyUserModel, make_trainer
-from PIL import Image
+from helpers import TinyUserModel, make_trainer, write_rendering_layout
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
-from lightning_vtr.data.binvox import write_binvox
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.format import ObjectRecord
 from lightning_vtr.synthesis import CachedSynthesizer, RenderSynthesizer, Synthesizer
@@ -21,28 +17,11 @@ MODELS = {"chairA": "train", "chairB": "train", "chairC": "train", "chairD": "va
 @pytest.fixture
 def rendering_layout(tmp_path):
     """3D-R2N2's layout (images + voxels, no meshes): 3 train, 1 val, 1 test chair of 4 32-px views."""
-    render_root, vox_root = tmp_path / "ShapeNetRendering", tmp_path / "ShapeNetVox32"
     image = np.zeros((32, 32, 4), dtype=np.uint8)
     image[8:24, 8:24] = (120, 60, 30, 255)
-    for model in MODELS:
-        rdir = render_root / "03001627" / model / "rendering"
-        rdir.mkdir(parents=True)
-        (rdir / "rendering_metadata.txt").write_text("".join(f"{90 * i} 30 0 0.8 25\n" for i in range(4)))
-        for i in range(4):
-            Image.fromarray(image).save(rdir / f"{i:02d}.png")
-        (vox_root / "03001627" / model).mkdir(parents=True)
-        voxels = np.zeros((32, 32, 32), dtype=bool)
-        voxels[8:24, 8:24, 8:24] = True
-        write_binvox(vox_root / "03001627" / model / "model.binvox", voxels)
-    split = [
-        {
-            "taxonomy_id": "03001627",
-            "taxonomy_name": "chair",
-            **{s: [m for m, ms in MODELS.items() if ms == s] for s in ("train", "val", "test")},
-        }
-    ]
-    (tmp_path / "split.json").write_text(json.dumps(split))
-    return {"rendering_root": str(render_root), "voxel_root": str(vox_root), "split_file": str(tmp_path / "split.json")}
+    voxels = np.zeros((32, 32, 32), dtype=bool)
+    voxels[8:24, 8:24, 8:24] = True
+    return write_rendering_layout(tmp_path, MODELS, image, voxels)
 
 
 def _datamodule(layout, tmp_path) -> VTRDataModule:
