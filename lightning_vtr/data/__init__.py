@@ -17,6 +17,7 @@ if TYPE_CHECKING:  # what IDEs and type checkers see; at runtime __getattr__ imp
     from lightning_vtr.data.pix3d import Pix3DDataset, Pix3DRecord, read_pix3d
     from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
     from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe, ImageTransform
+    from lightning_vtr.data.verify import VerifyReport, verify_dataset
     from lightning_vtr.protocol import VIEW_SETS
 
 _EXPORTS = {
@@ -38,6 +39,8 @@ _EXPORTS = {
     "IMAGE_RECIPES": "lightning_vtr.data.transforms",
     "ImageRecipe": "lightning_vtr.data.transforms",
     "ImageTransform": "lightning_vtr.data.transforms",
+    "VerifyReport": "lightning_vtr.data.verify",
+    "verify_dataset": "lightning_vtr.data.verify",
 }
 __all__ = [
     "IMAGE_RECIPES",
@@ -53,11 +56,13 @@ __all__ = [
     "Pix3DRecord",
     "ShapeNetRenderingSource",
     "VTRDataModule",
+    "VerifyReport",
     "build_dataset",
     "ensure_embedded_dataset",
     "evaluate_folder",
     "read_pix3d",
     "scan_dataset",
+    "verify_dataset",
 ]
 
 
