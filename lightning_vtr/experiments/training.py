@@ -101,8 +101,8 @@ _VISIBLE_NMS = {"score": "visible", "min_separation": 30.0}
 #:   suppression of bins within 30 degrees of a chosen one or of its antipode; ``"visible_tau"``: the same
 #:   suppression, bins sampled with probability proportional to solid angle x score (temperature 1) instead
 #:   of the hard top n; ``"visible_tau3"``: the same at temperature 3 (closer to area-uniform random);
-#:   ``"visible_nms_search"`` and ``"visible_tau_search"``: ``"visible_nms"`` and ``"visible_tau"`` searching 35 %
-#:   of the objects into a pool rebuilt at every selection.
+#:   ``"visible_nms_search"``, ``"visible_tau_search"`` and ``"visible_tau3_search"``: ``"visible_nms"``,
+#:   ``"visible_tau"`` and ``"visible_tau3"`` searching 35 % of the objects into a pool rebuilt at every selection.
 #:
 #: :func:`make_strategy` and :func:`run_strategy` take these names; their ``selector_kwargs`` and
 #: ``callback_kwargs`` go over the variant's.
@@ -148,6 +148,12 @@ VARIANTS: dict[str, StrategyVariant] = {
         {**_VISIBLE_NMS, "temperature": 1.0},
         {"search_fraction": 0.35, "pool_refresh": True},
         title="Visible + NMS, tau 1, search 35 %",
+    ),
+    "visible_tau3_search": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "temperature": 3.0},
+        {"search_fraction": 0.35, "pool_refresh": True},
+        title="Visible + NMS, tau 3, search 35 %",
     ),
 }
 

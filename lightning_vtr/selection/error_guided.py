@@ -166,7 +166,7 @@ class ErrorGuidedSelector(ViewSelector):
             self.candidates.to(errors.device),
             reduction=self.reduction,
             eps=self.eps,
-            binary=self.mode == "binary" or None,
+            binary=self.mode == "binary",
         ).to(predicted.dtype)
 
     def select(

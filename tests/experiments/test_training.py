@@ -186,7 +186,10 @@ def test_make_strategy_builds_every_registered_selector():
         callback = experiment.make_strategy(name, config)
         assert isinstance(callback, ErrorGuidedViewAugmentation) and type(callback.selector) is cls, name
         assert (callback.fraction, callback.seed) == (0.2, 3)
-    with pytest.raises(ValueError, match="`name` must be one of 'none', 'nature', .*'visible_tau_search', got 'ours'"):
+    with pytest.raises(
+        ValueError,
+        match="`name` must be one of 'none', 'nature', .*'visible_tau_search', 'visible_tau3_search', got 'ours'",
+    ):
         experiment.make_strategy("ours", config)
 
 

@@ -358,3 +358,100 @@ def test_argument_types_raise_type_errors():
         top_bins([[0.0, 1.0]], 1)
     with pytest.raises(ValueError, match=r"^`threshold` must be a number in \[0, 1\], got 1.5$"):
         error_volume(torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2), threshold=1.5)
+
+
+# ------------------------------------------------------------------------------ occlusion culling
+def _solid_shapes(res: int) -> torch.Tensor:
+    """A ball, an axis-aligned box touching the grid's border and a slanted slab: solid, with big interiors."""
+    c = voxel_centers(res, torch.float64)
+    ball = (c - torch.tensor([0.05, -0.1, 0.0], dtype=torch.float64)).norm(dim=-1) < 0.42
+    box = (c[..., 0] > -0.5) & (c[..., 0] < 0.2) & (c[..., 1].abs() < 0.3) & (c[..., 2] < 0.35)
+    slab = ((c @ torch.tensor([0.6, 0.48, 0.64], dtype=torch.float64)).abs() < 0.15) & (c.norm(dim=-1) < 0.45)
+    return torch.stack([ball, box, slab]).double()
+
+
+def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids():
+    # The score functions leave out voxels whose 2x2x2 block towards the cameras is full; the projection must
+    # stay the plain loops' one, also from axis-aligned views (a flat depth direction), in small images where
+    # some centres fall outside (half_extent 0.45), and with pixels half a voxel wide (half_extent 0.3, 12
+    # pixels), where a full block often leaves a voxel visible and only the table's occludable flags keep it.
+    res = 10
+    vols = _solid_shapes(res)
+    vols[2] = vols[2] * torch.linspace(0.2, 1.0, res**3, dtype=torch.float64).view(res, res, res)  # soft values
+    gen = torch.Generator().manual_seed(5)
+    random_views = torch.rand(6, 2, generator=gen, dtype=torch.float64) * torch.tensor([360.0, 180.0]) - torch.tensor(
+        [180.0, 90.0]
+    )
+    axis_views = torch.tensor([[0.0, 0.0], [90.0, 0.0], [-180.0, 0.0], [30.0, 90.0], [0.0, -90.0], [45.0, 35.26]])
+    views = torch.cat([candidate_viewpoints(60).double(), axis_views.double(), random_views])
+    for half_extent, size in ((math.sqrt(3) / 2, res), (0.45, 7), (0.3, 12)):
+        got = error_projection(vols, views, image_size=size, half_extent=half_extent)
+        for b in range(vols.shape[0]):
+            ref = reference_projection(vols[b].numpy(), views, size, half_extent, 0.0)
+            np.testing.assert_allclose(got[b].numpy(), ref, rtol=0, atol=1e-7)
+
+
+def test_every_interior_voxel_is_culled_for_the_candidate_views():
+    # For the selector's candidate views, each octant's voxels with all 7 neighbours towards the cameras
+    # inside the grid are occludable: a solid's interior never reaches the scatter.
+    from lightning_vtr.selection.projection import _projection_table
+
+    res = 12
+    table = _projection_table(res, candidate_viewpoints(30), res, math.sqrt(3) / 2, torch.device("cpu"))
+    assert len(table.groups) == 8 and sorted(len(g.views) for g in table.groups) == [9] * 8
+    assert torch.equal(torch.sort(torch.cat([g.views for g in table.groups])).values, torch.arange(72))
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    block_steps = torch.tensor([(res + 1) ** 2, res + 1, 1])
+    for group in table.groups:
+        towards = torch.tensor([(group.block_offset // int(s)) % (res + 1) for s in block_steps]) * 2 - 1
+        interior = ((ijk + towards >= 0) & (ijk + towards < res)).all(-1)
+        assert bool(group.occludable[interior].all())
+        assert not bool(group.occludable[~interior].all())  # the front border cannot be hidden by a full block
+
+
+def test_scores_are_the_same_in_one_thread_and_in_several():
+    # The scores must not depend on the thread count (ATen reductions may split their work by it).
+    vols = _solid_shapes(12)
+    soft = vols * torch.rand(vols.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    views = candidate_viewpoints(30)
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for count in (1, 4):
+            torch.set_num_threads(count)
+            results.append(
+                (
+                    projection_scores(soft, views, reduction="mean"),
+                    projection_scores(vols > 0, views, binary=True),
+                    error_projection(soft, views),
+                )
+            )
+    finally:
+        torch.set_num_threads(threads)
+    for one, several in zip(*results):
+        assert torch.equal(one, several)
+    assert float(results[0][1].min()) > 0  # every view sees each solid
+
+
+@pytest.mark.parametrize("mode", ["binary", "soft"])
+def test_visible_scores_equal_the_loop_reference_on_solids(mode):
+    # The binary "visible" score reads the error bit carried in the first-hit keys, the soft one gathers
+    # values: both must equal the plain loops' first hit on prediction-or-truth, valued by the error there.
+    from lightning_vtr.selection.projection import visible_error_scores
+
+    res = 10
+    target = _solid_shapes(res).float()
+    gen = torch.Generator().manual_seed(11)
+    noise = torch.rand(target.shape, generator=gen)
+    predicted = torch.where(noise < 0.15, 1.0 - target, target) * 0.8 + 0.1 * noise  # ~15 % wrong, soft values
+    views = torch.cat([candidate_viewpoints(60), torch.tensor([[0.0, 0.0], [30.0, 90.0], [12.0, -37.0]])])
+    got = visible_error_scores(predicted, target, views, threshold=0.4, mode=mode)
+    occupied_pred, occupied_gt = predicted >= 0.4, target >= 0.5
+    error = (occupied_pred != occupied_gt).double() if mode == "binary" else (predicted - target).abs().double()
+    # values 1 + error on the surface: the reference's first-hit map minus its hit mask is the error seen
+    surface_values = torch.where(occupied_pred | occupied_gt, 1.0 + error, torch.zeros((), dtype=torch.float64))
+    for b in range(target.shape[0]):
+        seen = reference_projection(surface_values[b].numpy(), views, res, math.sqrt(3) / 2, 0.0)
+        expected = (seen - (seen > 0)).sum(axis=(1, 2))
+        np.testing.assert_allclose(got[b].numpy(), expected, rtol=1e-5, atol=1e-4)
+    assert float(got.sum()) > 0
