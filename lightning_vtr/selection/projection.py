@@ -73,10 +73,14 @@ _TABLE_CACHE_SIZE = 6
 #: Views processed together while building a table, to bound the float64 temporaries.
 _TABLE_VIEW_CHUNK = 16
 #: Occupied (voxel, view) pairs per chunk of objects in the score functions, before culling: bounds the
-#: index buffers (tens of MB at this size). The scatter writes one view group's (B, V / 8, S^2 + 1) buffer at
-#: a time, which stays in cache, so bigger chunks are faster: on 2 cores a batch of 64 objects in one chunk
-#: scored ~1.2x faster than in chunks of 2^22 pairs.
-_SCORE_CHUNK_PAIRS = 1 << 26
+#: index buffers (tens of MB). The scatter writes one view group's (B, V / 8, S^2 + 1) buffer at a time, which
+#: stays in cache, so chunks can be big: on 2 cores, 64 objects at R = 32, K = 30 (about 2^24 pairs) scored
+#: fastest in chunks of 2^24 to 2^25 pairs, ~20 % faster than in chunks of 2^22.
+_SCORE_CHUNK_PAIRS = 1 << 25
+#: The per-group culling runs when the full 2x2x2 blocks number more than this share of the occupied voxels
+#: (each block culls at most one voxel per group). On the benchmark's objects it paid for the "visible"
+#: surfaces (0.75 blocks per voxel, 1.2x faster) and cost the "paper" score's error blobs (0.36, 0.9x).
+_CULL_MIN_SHARE = 0.5
 
 _table_cache: OrderedDict[tuple, _Table] = OrderedDict()
 
@@ -377,23 +381,28 @@ def _first_hits(
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
     flag_bits = None if flags is None else flags.reshape(-1).index_select(0, flat_ids)
     blocks = blocks.view(-1)
-    block_at = table.block_index.index_select(0, vox).add_(obj * (resolution + 1) ** 3)
+    # A full block culls one voxel per group: with few of them (sparse errors) the culling costs more than it saves.
+    cull = int(torch.count_nonzero(blocks)) > _CULL_MIN_SHARE * flat_ids.numel()
+    block_at = table.block_index.index_select(0, vox).add_(obj * (resolution + 1) ** 3) if cull else None
 
     for group in table.groups:
-        hidden = blocks.index_select(0, block_at + group.block_offset)
-        hidden.logical_and_(group.occludable.index_select(0, vox))
-        kept = torch.nonzero(hidden.logical_not_()).squeeze(1)
-        voxels = vox.index_select(0, kept)
+        if cull:
+            hidden = blocks.index_select(0, block_at + group.block_offset)
+            hidden.logical_and_(group.occludable.index_select(0, vox))
+            kept = torch.nonzero(hidden.logical_not_()).squeeze(1)
+            voxels, objects = vox.index_select(0, kept), obj.index_select(0, kept)
+        else:
+            kept, voxels, objects = None, vox, obj
         stride = group.slot.shape[1] * (pixels + 1)
         index = group.slot.index_select(0, voxels)  # scatter_reduce takes int32 indices where they fit
         if batch * stride > torch.iinfo(index.dtype).max:
             index = index.long()
-        index.add_((obj.index_select(0, kept) * stride).to(index.dtype)[:, None])
+        index.add_((objects * stride).to(index.dtype)[:, None])
         if flag_bits is None:
             keys = group.key.index_select(0, voxels)
         else:
             keys = group.flag_key.index_select(0, voxels)
-            keys.bitwise_or_(flag_bits.index_select(0, kept).to(keys.dtype)[:, None])
+            keys.bitwise_or_((flag_bits if kept is None else flag_bits.index_select(0, kept)).to(keys.dtype)[:, None])
         best = torch.full((batch, group.slot.shape[1], pixels + 1), missed, dtype=keys.dtype, device=obj.device)
         best.view(-1).scatter_reduce_(0, index.view(-1), keys.view(-1), reduce="amin")
         best[..., pixels] = missed
@@ -419,24 +428,27 @@ def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
     return torch.gather(padded, 1, winner).view_as(best)
 
 
-def _value_rows(flat: Tensor, dtype: torch.dtype | None = None) -> Tensor:
-    """``(B * (N + 1), 1)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
+def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
+    """``(B * (N + 1), C)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
     A bool ``flat`` gives uint8 rows; a float one rows in ``dtype`` (default: its own) if that is float32 or
-    float64, else in float32.
+    float64, else in float32. ``counts=True`` (float values only) adds a second column, 1 for every voxel,
+    so the same gather also counts the hit pixels.
     """
     if flat.dtype == torch.bool:
         dtype = torch.uint8
     else:
         dtype = flat.dtype if dtype is None else dtype
         dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
-    rows = torch.zeros(flat.shape[0], flat.shape[1] + 1, dtype=dtype, device=flat.device)
-    rows[:, :-1] = flat
-    return rows.view(-1, 1)
+    rows = torch.zeros(flat.shape[0], flat.shape[1] + 1, 1 + counts, dtype=dtype, device=flat.device)
+    rows[:, :-1, 0] = flat
+    if counts:
+        rows[:, :-1, 1] = 1
+    return rows.view(-1, 1 + counts)
 
 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
-    """``(B, V)`` sums over pixels of the values (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
+    """``(B, V, C)`` sums over pixels of the rows (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
 
     The keys are turned into row numbers in place (``best`` is overwritten). Float values are gathered and
     summed by one ``embedding_bag``, without a ``(B, V, P)`` tensor of values; {0, 1} values (uint8 rows)
@@ -449,8 +461,9 @@ def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
     best.bitwise_and_((1 << _key_bits(per_object - 1)) - 1)
     best.add_(torch.arange(0, rows.shape[0], per_object, dtype=best.dtype, device=best.device).view(-1, 1, 1))
     if rows.dtype == torch.uint8:
-        return rows.view(-1).index_select(0, best.view(-1)).view(best.shape).sum(-1)
-    return torch.nn.functional.embedding_bag(best.view(-1, best.shape[-1]), rows, mode="sum").view(batch, -1)
+        return rows.view(-1).index_select(0, best.view(-1)).view(best.shape).sum(-1, keepdim=True)
+    sums = torch.nn.functional.embedding_bag(best.view(-1, best.shape[-1]), rows, mode="sum")
+    return sums.view(batch, best.shape[1], rows.shape[1])
 
 
 def _is_binary(flat: Tensor, eps: float) -> bool:
@@ -503,13 +516,20 @@ def projection_scores(
     total = torch.zeros(batch, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     hits = torch.zeros(batch, viewpoints.shape[0], dtype=torch.int32, device=volumes.device)
     for chunk in _object_chunks(occupied, viewpoints.shape[0]):
-        rows = None if counts_only else _value_rows(flat[chunk])
+        # values: summed with the number of hits (mean) in one gather; binary: only the hits are counted
+        rows = None if counts_only else _value_rows(flat[chunk], counts=reduction == "mean")
         chunk_hits, chunk_total = hits[chunk], total[chunk]
 
         def score(views: Tensor, best: Tensor) -> None:
-            count = (best != missed).sum(-1, dtype=torch.int32)
-            chunk_hits.index_copy_(1, views, count)
-            chunk_total.index_copy_(1, views, (count if rows is None else _hit_sums(best, rows)).to(dtype))
+            if rows is None:
+                count = (best != missed).sum(-1, dtype=torch.int32)
+                chunk_hits.index_copy_(1, views, count)
+                chunk_total.index_copy_(1, views, count.to(dtype))
+                return
+            sums = _hit_sums(best, rows)
+            chunk_total.index_copy_(1, views, sums[..., 0].to(dtype))
+            if sums.shape[-1] > 1:
+                chunk_hits.index_copy_(1, views, sums[..., 1].round().to(torch.int32))
 
         _first_hits(occupied[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score)
     if reduction == "sum":
@@ -566,7 +586,7 @@ def visible_error_scores(
             rows, flags = _value_rows(errors[chunk], predicted.dtype), None
 
             def score(views: Tensor, best: Tensor) -> None:
-                chunk_scores.index_copy_(1, views, _hit_sums(best, rows).to(scores.dtype))
+                chunk_scores.index_copy_(1, views, _hit_sums(best, rows)[..., 0].to(scores.dtype))
 
         _first_hits(surface[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score, flags)
     return scores
