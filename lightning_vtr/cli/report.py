@@ -89,6 +89,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default {defaults.test_repeats})",
     )
     add(
+        "--validation-triplets",
+        metavar="T",
+        type=positive_int,
+        default=None,
+        help="also test every fine-tuned model on the validation objects, each on T fixed view sets, and print "
+        "the paired differences there: choose strategies on those, not on the test split (default: off)",
+    )
+    add(
         "--fraction",
         type=float,
         default=defaults.fraction,
@@ -141,6 +149,7 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
         strategies=args.strategies,
         ablations=[] if args.no_ablations else args.ablations,
         command=command,
+        validation_triplets=args.validation_triplets,
     )
 
 

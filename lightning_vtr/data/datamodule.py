@@ -125,6 +125,9 @@ class VTRDataModule(L.LightningDataModule):
             ``shapenet_rendering``); ``lightning-vtr dataset-info ROOT --verify`` is the same check by hand.
         train_view_set: the view set of the train and validation splits: ``"aligned"`` (the paper's protocol),
             or ``"pix3d"`` for a dataset built with ``lightning-vtr build-dataset --protocol pix3d``.
+        test_split: the split ``test_dataloader`` serves (``"test"``); ``"val"`` tests on the validation
+            objects' view sets, with ``test_repeats`` items each, to choose among models without touching the
+            test split.
 
     Raises:
         DatasetFormatError: at :meth:`setup`, with ``verify=True``, when the dataset has problems.
@@ -158,6 +161,7 @@ class VTRDataModule(L.LightningDataModule):
         recipe: ImageRecipe | str | Mapping[str, Any] = "plain",
         verify: bool = False,
         train_view_set: str = "aligned",
+        test_split: str = "test",
     ) -> None:
         super().__init__()
         # Resolved before save_hyperparameters(), which reads the arguments' current values.
@@ -183,6 +187,7 @@ class VTRDataModule(L.LightningDataModule):
                 )
         check_type("verify", verify, bool, "bool")
         check_type("train_view_set", train_view_set, str, "str")
+        check_choice("test_split", test_split, ("test", "val"))
         if verify and shapenet_rendering is not None:
             raise ValueError(
                 "`verify` must be False with `shapenet_rendering` (it checks ShapeNet-VTR directories), "
@@ -213,6 +218,7 @@ class VTRDataModule(L.LightningDataModule):
         self._generated_dir_arg = generated_dir
         self.verify = verify
         self.train_view_set = train_view_set
+        self.test_split = test_split
         self._records: list[ObjectRecord] | None = None
         self._generated: list[dict] = []
         self._next_sample_id = 0
@@ -313,7 +319,7 @@ class VTRDataModule(L.LightningDataModule):
         return Path(self._generated_dir_arg).expanduser()
 
     # ------------------------------------------------------------------ loaders
-    def _dataset(self, split: str, view_set: str, train: bool) -> VTRDataset:
+    def _dataset(self, split: str, view_set: str, train: bool, repeats: int = 1) -> VTRDataset:
         return VTRDataset(
             self.split_records(split),
             view_set,
@@ -321,7 +327,7 @@ class VTRDataModule(L.LightningDataModule):
             transform=self.train_transform if train else self.transform,
             train=train,
             seed=self.seed,
-            repeats=self.test_repeats if split == "test" else 1,
+            repeats=repeats,
         )
 
     def _epoch(self) -> int:
@@ -369,7 +375,7 @@ class VTRDataModule(L.LightningDataModule):
         shard, without the repeated items Lightning's sampler pads with, so every test object counts once."""
         loaders = []
         for name in self.test_view_sets:
-            dataset = self._dataset("test", name, train=False)
+            dataset = self._dataset(self.test_split, name, train=False, repeats=self.test_repeats)
             shards = self.trainer.distributed_sampler_kwargs if self.trainer is not None else None
             if shards and shards.get("num_replicas", 1) > 1:
                 sampler = _UnpaddedShardSampler(dataset, shards["num_replicas"], shards["rank"])

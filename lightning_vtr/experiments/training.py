@@ -656,3 +656,36 @@ def run_strategy(
     }
     atomic_write(result_file, json.dumps(payload, indent=1))
     return payload
+
+
+def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
+    """Test the final weights of a fine-tuning run on the *validation* split's view sets; cached.
+
+    Loads ``run_dir/checkpoints/last.ckpt`` (written by :func:`run_strategy`) into the experiment's model and
+    tests it on every view set of the validation objects, each on ``repeats`` fixed view sets (the same for
+    every strategy of a seed). Choosing a strategy on these numbers leaves the test split untouched.
+
+    Returns:
+        ``{view_set: {metric: value}}`` as :func:`evaluate` gives, cached in ``run_dir/validation.json`` (a
+        cache written with another ``repeats`` is recomputed).
+
+    Raises:
+        FileNotFoundError: the run has no ``checkpoints/last.ckpt`` (it was not fitted by :func:`run_strategy`).
+    """
+    check_int("repeats", repeats, minimum=1)
+    run_dir = Path(run_dir)
+    cache = run_dir / "validation.json"
+    if cache.is_file():
+        cached = json.loads(cache.read_text())
+        if cached.get("repeats") == repeats:
+            return cached["results"]
+    checkpoint = run_dir / "checkpoints" / "last.ckpt"
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint} does not exist: validate_run needs a run fitted by run_strategy")
+    model = make_model(config, fine_tuning=True)
+    model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"])
+    dm = make_datamodule(config, model)
+    dm.test_split, dm.test_repeats = "val", repeats
+    results = evaluate(model, dm, config, run_dir)
+    atomic_write(cache, json.dumps({"repeats": repeats, "results": results}, indent=1))
+    return results

@@ -95,6 +95,8 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert captured[-1].ablations == [] and captured[-1].experiment.test_repeats == 3
     assert config.experiment.recipe == "plain"
     assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
+    assert config.validation_triplets is None
+    assert main(["report", "--validation-triplets", "12"]) == 0 and captured[-1].validation_triplets == 12
 
 
 @pytest.mark.parametrize(
@@ -104,6 +106,7 @@ def test_cli_defaults_are_the_report_defaults(captured):
         (["--ablations", "k,dropout"], "invalid choice(s) 'dropout'"),
         (["--ablations", "k", "--no-ablations"], "not allowed with argument"),
         (["--test-triplets", "0"], "positive integer"),
+        (["--validation-triplets", "0"], "positive integer"),
         (["--model", "unet"], "invalid choice: 'unet'"),
         (["--finetune-lr", "linear"], "invalid choice: 'linear'"),
         (["--recipe", "imagenet"], "invalid choice: 'imagenet'"),

@@ -104,6 +104,18 @@ def test_test_repeats_serve_every_test_object_t_times_and_only_in_test(tiny_data
         VTRDataModule(str(tiny_dataset), test_repeats=0)
 
 
+def test_test_split_val_serves_the_validation_objects_with_repeats(tiny_dataset):
+    dm = _dm(tiny_dataset, batch_size=64, test_repeats=2, test_split="val")
+    val_ids = {r.object_id for r in dm.split_records("val")}
+    test_ids = {r.object_id for r in dm.split_records("test")}
+    assert len(val_ids) == 3 and not val_ids & test_ids
+    for batch in (next(iter(dl)) for dl in dm.test_dataloader()):
+        assert len(batch["object_id"]) == 2 * 3 and set(batch["object_id"]) == val_ids
+    assert len(dm.val_dataloader().dataset) == 3  # the validation loader itself keeps one item per object
+    with pytest.raises(ValueError, match=r"^`test_split` must be one of 'test', 'val', got 'train'$"):
+        VTRDataModule(str(tiny_dataset), test_split="train")
+
+
 def test_add_samples_persists_and_serves_from_next_loader(tiny_dataset, tmp_path):
     dm = _dm(tiny_dataset, generated_dir=str(tmp_path / "gen"))
     n_train = len(dm.train_dataset())

@@ -643,3 +643,42 @@ def test_time_split_sums_the_measured_stages(tmp_path, monkeypatch):
     assert rows["&nbsp;&nbsp;selection + synthesis"] == ["12.0", f"{100 * 12 / 425:.1f}"]
     assert rows["Testing"] == ["44.0", f"{100 * 44 / 425:.1f}"]
     assert rows["random"] == ["50.5", "41.5", "1.0", "1.5", "6.0", "0.5", "12.0"]
+
+
+def test_validation_tables_pair_the_validation_results_and_merged_runs_are_validated_once(tmp_path, monkeypatch):
+    seeds = [0, 1, 2]
+    test_iou = {"none": {0: 0.4, 1: 0.5, 2: 0.45}, "random": {0: 0.5, 1: 0.6, 2: 0.55}}
+    test_iou["error_guided"] = test_iou["paper"] = {0: 0.45, 1: 0.55, 2: 0.5}
+    _stub_runs(monkeypatch, tmp_path, test_iou)
+    # On the validation objects: Random +1, +2, +3 points over none; Ours -1, 0, +1 over none.
+    val_iou = {"none": {0: 0.30, 1: 0.40, 2: 0.35}}
+    val_iou["random"] = {s: val_iou["none"][s] + d for s, d in zip(seeds, (0.01, 0.02, 0.03))}
+    val_iou["error_guided"] = {s: val_iou["none"][s] + d for s, d in zip(seeds, (-0.01, 0.0, 0.01))}
+    validated = []
+
+    def validate_run(config, run_dir, repeats):
+        validated.append((run_dir.name, config.seed, repeats))
+        return {v: {"iou@0.4": val_iou[run_dir.name][config.seed]} for v in VIEW_SETS}
+
+    monkeypatch.setattr(experiment, "validate_run", validate_run)
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, validation_triplets=12)
+    result = run_report(config)
+    # error_guided and paper are one run while the default is the paper's rule: validated once per seed
+    assert sorted(validated) == sorted((r, s, 12) for r in ("none", "random", "error_guided") for s in seeds)
+    tables = _parse_tables(result["markdown"])
+    _, rows = tables["Validation split: paired difference to None-VTR (mIoU points)"]
+    assert rows["Random"] == ["+2.00 [-0.48, +4.48], 3/3"] * 3
+    assert rows["Ours"] == rows["Ours (paper rule)"] == ["+0.00 [-2.48, +2.48], 0/3"] * 3
+    _, rows = tables["Validation split: paired difference to Random (mIoU points)"]
+    assert rows["Ours"] == ["-2.00 [-2.00, -2.00], 3/3"] * 3
+    # the test-split tables keep the test results (Ours +5 points over none on every seed there)
+    _, rows = tables["Paired difference to None-VTR (mIoU points)"]
+    assert rows["Ours"] == ["+5.00 [+5.00, +5.00], 3/3"] * 3
+    assert "--validation-triplets 12" in result["markdown"]
+    assert result["validation_differences"]["random"]["Ours"]["spherical"].mean == pytest.approx(-0.02)
+
+    validated.clear()
+    plain = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    assert validated == [] and "Validation split" not in plain["markdown"]
+    with pytest.raises(ValueError, match=r"`validation_triplets` must be an int >= 1, got 0"):
+        ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_triplets=0)

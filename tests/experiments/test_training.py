@@ -337,3 +337,44 @@ def test_stage_timer_splits_a_fit_and_a_test(tmp_path):
     parts = ("train_steps", "train_data", "validation", "augmentation", "fit_other")
     assert math.fsum(seconds[k] for k in parts) == pytest.approx(seconds["fit"], rel=1e-6)
     assert seconds["test"] == seconds["test_steps"] == seconds["test_data"] == 0.0
+
+
+def test_validate_run_tests_the_final_weights_on_the_validation_objects_and_caches(tiny_dataset, tmp_path, monkeypatch):
+    config = ExperimentConfig(preset="tiny", data=str(tiny_dataset), out=str(tmp_path), batch_size=4, accelerator="cpu")
+    run_dir = tmp_path / "visible"
+    with pytest.raises(FileNotFoundError, match="last.ckpt does not exist"):
+        experiment.validate_run(config, run_dir, 2)
+    torch.manual_seed(0)
+    model = experiment.make_model(config, fine_tuning=True)
+    (run_dir / "checkpoints").mkdir(parents=True)
+    torch.save({"state_dict": model.state_dict()}, run_dir / "checkpoints" / "last.ckpt")
+
+    tested: list[tuple[str, list[int]]] = []
+    test = L.Trainer.test
+
+    def recording_test(self, model, datamodule=None, **kwargs):
+        tested.append((datamodule.test_split, [len(dl.dataset) for dl in datamodule.test_dataloader()]))
+        return test(self, model, datamodule=datamodule, **kwargs)
+
+    monkeypatch.setattr(L.Trainer, "test", recording_test)
+    results = experiment.validate_run(config, run_dir, 2)
+    # the 3 validation objects (one per category) on 2 view sets each, for each of the three view sets
+    assert tested == [("val", [6, 6, 6])]
+    assert json.loads((run_dir / "validation.json").read_text()) == {"repeats": 2, "results": results}
+
+    # The same numbers as testing these weights on a datamodule of the validation split by hand.
+    dm = experiment.make_datamodule(config, model)
+    dm.test_split, dm.test_repeats = "val", 2
+    by_hand = experiment.evaluate(model.eval(), dm, config, tmp_path / "by_hand")
+    assert set(results) == set(by_hand)
+    for view_set in ("aligned", "hemispherical", "spherical"):
+        assert results[view_set]["iou@0.4"] == pytest.approx(by_hand[view_set]["iou@0.4"], abs=1e-6)
+    # ... and not the test split's
+    dm.test_split = "test"
+    on_test = experiment.evaluate(model, dm, config, tmp_path / "on_test")
+    assert on_test["spherical"]["iou@0.4"] != pytest.approx(results["spherical"]["iou@0.4"], abs=1e-6)
+
+    tested.clear()
+    assert experiment.validate_run(config, run_dir, 2) == results and tested == []  # cached
+    experiment.validate_run(config, run_dir, 1)  # another repeat count is recomputed
+    assert tested == [("val", [3, 3, 3])]
