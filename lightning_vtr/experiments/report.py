@@ -744,32 +744,25 @@ def run_report(config: ReportConfig) -> dict:
             + "; ".join(f"{STRATEGY_TITLES[r.strategy]} = {STRATEGY_TITLES[strategy_of[r.same_as]]}" for r in merged)
             + ".",
         ]
-    for baseline, by_title in differences.items():
-        if not by_title:
-            continue
-        sections += [
-            "",
-            f"## Paired difference to {STRATEGY_TITLES[baseline]} (mIoU points)",
-            "",
-            "Per seed, each strategy minus "
-            f"{STRATEGY_TITLES[baseline]}: the same pretrained model and the same test items. Each cell: the mean "
-            "difference, its 95 % CI over seeds (with 2+ seeds) and how many seeds agree with the mean's sign.",
-            "",
-            _difference_table(by_title),
-        ]
-    for baseline, by_title in validation_differences.items():
-        if not by_title:
-            continue
-        sections += [
-            "",
-            f"## Validation split: paired difference to {STRATEGY_TITLES[baseline]} (mIoU points)",
-            "",
-            f"The same models on the validation objects, each on {config.validation_triplets} fixed view set(s): "
-            "choose among strategies here, and read the test-split tables above as the confirmation, so that no "
-            "choice is tuned on the test split. Cells as above.",
-            "",
-            _difference_table(by_title),
-        ]
+    test_note = (
+        "Per seed, each strategy minus {baseline}: the same pretrained model and the same test items. Each cell: "
+        "the mean difference, its 95 % CI over seeds (with 2+ seeds) and how many seeds agree with the mean's sign."
+    )
+    validation_note = (
+        f"The same models on the validation objects, each on {config.validation_triplets} fixed view set(s): "
+        "choose among strategies here, and read the test-split tables above as the confirmation, so that no "
+        "choice is tuned on the test split. Cells as above."
+    )
+    headed = (
+        ("Paired difference to {baseline} (mIoU points)", test_note, differences),
+        ("Validation split: paired difference to {baseline} (mIoU points)", validation_note, validation_differences),
+    )
+    for heading, note, tables in headed:
+        for baseline, by_title in tables.items():
+            if by_title:
+                title = STRATEGY_TITLES[baseline]
+                sections += ["", "## " + heading.format(baseline=title), "", note.format(baseline=title), ""]
+                sections.append(_difference_table(by_title))
     if view_statistics:
         sections += [
             "",
