@@ -394,8 +394,9 @@ def _first_hits(
         else:
             kept, voxels, objects = None, vox, obj
         stride = group.slot.shape[1] * (pixels + 1)
-        index = group.slot.index_select(0, voxels)  # scatter_reduce takes int32 indices where they fit
-        if batch * stride > torch.iinfo(index.dtype).max:
+        # int32 indices on CPU, where scatter_reduce takes them and they fit (they halve the index traffic)
+        index = group.slot.index_select(0, voxels)
+        if index.device.type != "cpu" or batch * stride > torch.iinfo(index.dtype).max:
             index = index.long()
         index.add_((objects * stride).to(index.dtype)[:, None])
         if flag_bits is None:
