@@ -370,7 +370,8 @@ def _solid_shapes(res: int) -> torch.Tensor:
     return torch.stack([ball, box, slab]).double()
 
 
-def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids():
+@pytest.mark.parametrize("device", DEVICES)
+def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids(device):
     # The score functions leave out voxels whose 2x2x2 block towards the cameras is full; the projection must
     # stay the plain loops' one, also from axis-aligned views (a flat depth direction), in small images where
     # some centres fall outside (half_extent 0.45), and with pixels half a voxel wide (half_extent 0.3, 12
@@ -385,7 +386,7 @@ def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids():
     axis_views = torch.tensor([[0.0, 0.0], [90.0, 0.0], [-180.0, 0.0], [30.0, 90.0], [0.0, -90.0], [45.0, 35.26]])
     views = torch.cat([candidate_viewpoints(60).double(), axis_views.double(), random_views])
     for half_extent, size in ((math.sqrt(3) / 2, res), (0.45, 7), (0.3, 12)):
-        got = error_projection(vols, views, image_size=size, half_extent=half_extent)
+        got = error_projection(vols.to(device), views.to(device), image_size=size, half_extent=half_extent).cpu()
         for b in range(vols.shape[0]):
             ref = reference_projection(vols[b].numpy(), views, size, half_extent, 0.0)
             np.testing.assert_allclose(got[b].numpy(), ref, rtol=0, atol=1e-7)
@@ -433,8 +434,9 @@ def test_scores_are_the_same_in_one_thread_and_in_several():
     assert float(results[0][1].min()) > 0  # every view sees each solid
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mode", ["binary", "soft"])
-def test_visible_scores_equal_the_loop_reference_on_solids(mode):
+def test_visible_scores_equal_the_loop_reference_on_solids(mode, device):
     # The binary "visible" score reads the error bit carried in the first-hit keys, the soft one gathers
     # values: both must equal the plain loops' first hit on prediction-or-truth, valued by the error there.
     from lightning_vtr.selection.projection import visible_error_scores
@@ -445,7 +447,9 @@ def test_visible_scores_equal_the_loop_reference_on_solids(mode):
     noise = torch.rand(target.shape, generator=gen)
     predicted = torch.where(noise < 0.15, 1.0 - target, target) * 0.8 + 0.1 * noise  # ~15 % wrong, soft values
     views = torch.cat([candidate_viewpoints(60), torch.tensor([[0.0, 0.0], [30.0, 90.0], [12.0, -37.0]])])
-    got = visible_error_scores(predicted, target, views, threshold=0.4, mode=mode)
+    got = visible_error_scores(
+        predicted.to(device), target.to(device), views.to(device), threshold=0.4, mode=mode
+    ).cpu()
     occupied_pred, occupied_gt = predicted >= 0.4, target >= 0.5
     error = (occupied_pred != occupied_gt).double() if mode == "binary" else (predicted - target).abs().double()
     # values 1 + error on the surface: the reference's first-hit map minus its hit mask is the error seen
