@@ -257,7 +257,8 @@ def _view_groups(slot: Tensor, key: Tensor, resolution: int, viewpoints: Tensor,
             index = (moved.clamp(0, resolution - 1) * strides).sum(-1)
             hidden |= (group_slot[index] == group_slot) & (group_key[index] < group_key) & inside
         block_offset = int((padded_strides * (torch.tensor(steps) > 0)).sum())
-        groups.append(_ViewGroup(columns, group_slot, group_key, group_key, hidden.all(1), block_offset))
+        flag_key = (group_key >> _key_bits(resolution**3)) << 1
+        groups.append(_ViewGroup(columns, group_slot, group_key, flag_key, hidden.all(1), block_offset))
     return groups
 
 
@@ -310,7 +311,7 @@ def _projection_table(
             group.views.to(device),
             group.slot.to(device=device, dtype=slot_dtype),
             group.key.to(device=device, dtype=key_dtype),
-            ((group.key >> bits) << 1).to(device=device, dtype=torch.int32 if 2 * n_vox < int32_max else torch.int64),
+            group.flag_key.to(device=device, dtype=torch.int32 if 2 * n_vox < int32_max else torch.int64),
             group.occludable.to(device),
             group.block_offset,
         )
