@@ -264,17 +264,11 @@ def _read_json(path: Path) -> dict | None:
 
 def _single_view(run: _Run, exp: ExperimentConfig, source: dict) -> dict:
     """Test the fine-tuned model of ``run.single_view_of`` with 1 input view; cached in ``results.json``."""
-    import torch
-
     run_dir = Path(exp.out) / run.name
     result_file = run_dir / "results.json"
     if result_file.is_file():
         return json.loads(result_file.read_text())
-    ckpt = Path(exp.out) / run.single_view_of / "checkpoints" / "last.ckpt"
-    if not ckpt.is_file():
-        raise FileNotFoundError(f"single-view evaluation needs the fine-tuned checkpoint {ckpt}, which does not exist")
-    model = training.make_model(exp)
-    model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
+    model = training.load_run_model(exp, Path(exp.out) / run.single_view_of)
     timer = training.StageTimer()
     start = time.perf_counter()
     results = training.evaluate(model, training.make_datamodule(exp, model, num_views=1), exp, run_dir, timer=timer)

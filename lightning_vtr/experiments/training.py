@@ -658,6 +658,20 @@ def run_strategy(
     return payload
 
 
+def load_run_model(config: ExperimentConfig, run_dir: Path) -> VoxelReconstructionModule:
+    """The experiment's model with the final weights of a fitted run (``run_dir/checkpoints/last.ckpt``).
+
+    Raises:
+        FileNotFoundError: the run has no ``checkpoints/last.ckpt`` (it was not fitted by :func:`run_strategy`).
+    """
+    checkpoint = Path(run_dir) / "checkpoints" / "last.ckpt"
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint} does not exist: the run was not fitted by run_strategy")
+    model = make_model(config, fine_tuning=True)
+    model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"])
+    return model
+
+
 def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
     """Test the final weights of a fine-tuning run on the *validation* split's view sets; cached.
 
@@ -679,11 +693,7 @@ def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
         cached = json.loads(cache.read_text())
         if cached.get("repeats") == repeats:
             return cached["results"]
-    checkpoint = run_dir / "checkpoints" / "last.ckpt"
-    if not checkpoint.is_file():
-        raise FileNotFoundError(f"{checkpoint} does not exist: validate_run needs a run fitted by run_strategy")
-    model = make_model(config, fine_tuning=True)
-    model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"])
+    model = load_run_model(config, run_dir)
     dm = make_datamodule(config, model)
     dm.test_split, dm.test_repeats = "val", repeats
     results = evaluate(model, dm, config, run_dir)

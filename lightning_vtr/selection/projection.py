@@ -332,17 +332,22 @@ def clear_projection_cache() -> None:
     _table_cache.clear()
 
 
+def _all_of_2x2x2(grid: Tensor) -> Tensor:
+    """``(B, D - 1, D - 1, D - 1)`` bool of a ``(B, D, D, D)`` bool grid: entry ``(i, j, k)`` says the 2x2x2 block
+    from ``(i, j, k)`` to ``(i + 1, j + 1, k + 1)`` is all set."""
+    grid = grid[:, 1:] & grid[:, :-1]
+    grid = grid[:, :, 1:] & grid[:, :, :-1]
+    return grid[:, :, :, 1:] & grid[:, :, :, :-1]
+
+
 def _full_blocks(grid: Tensor) -> Tensor:
     """``(B, (R + 1)^3)`` bool: entry ``(i, j, k)`` says voxels ``(i - 1 .. i, j - 1 .. j, k - 1 .. k)`` are all occupied.
 
     Zero on the border, so the block towards the cameras of voxel ``n`` is entry ``n + (steps > 0)``.
     """
     batch, resolution = grid.shape[0], grid.shape[1]
-    full = grid[:, 1:] & grid[:, :-1]
-    full = full[:, :, 1:] & full[:, :, :-1]
-    full = full[:, :, :, 1:] & full[:, :, :, :-1]
     padded = grid.new_zeros(batch, resolution + 1, resolution + 1, resolution + 1)
-    padded[:, 1:resolution, 1:resolution, 1:resolution] = full
+    padded[:, 1:resolution, 1:resolution, 1:resolution] = _all_of_2x2x2(grid)
     return padded.view(batch, -1)
 
 
@@ -373,10 +378,8 @@ def _first_hits(
     missed = _missed_key(n_vox) if flags is None else 2 * n_vox
     blocks = _full_blocks(occupied.view(batch, resolution, resolution, resolution))
     # A voxel whose 3x3x3 neighbourhood is full (its 8 blocks are) is culled in every group: leave it out now.
-    deep = blocks.view(batch, resolution + 1, resolution + 1, resolution + 1)
-    deep = deep[:, 1:] & deep[:, :-1]
-    deep = deep[:, :, 1:] & deep[:, :, :-1]
-    deep = (deep[:, :, :, 1:] & deep[:, :, :, :-1]).view(batch, -1).logical_and_(table.occludable)
+    deep = _all_of_2x2x2(blocks.view(batch, resolution + 1, resolution + 1, resolution + 1))
+    deep = deep.reshape(batch, -1).logical_and_(table.occludable)
     # one flat nonzero is cheaper than a 2-d one; split it into (object, voxel) arithmetically
     flat_ids = torch.nonzero(occupied.reshape(batch, -1).logical_and(deep.logical_not_()).view(-1)).squeeze(1)
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
@@ -433,15 +436,11 @@ def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
 def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
     """``(B * (N + 1), C)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
-    A bool ``flat`` gives uint8 rows; a float one rows in ``dtype`` (default: its own) if that is float32 or
-    float64, else in float32. ``counts=True`` (float values only) adds a second column, 1 for every voxel,
-    so the same gather also counts the hit pixels.
+    In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32. ``counts=True`` adds a
+    second column, 1 for every voxel, so the same gather also counts the hit pixels.
     """
-    if flat.dtype == torch.bool:
-        dtype = torch.uint8
-    else:
-        dtype = flat.dtype if dtype is None else dtype
-        dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
+    dtype = flat.dtype if dtype is None else dtype
+    dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
     rows = torch.zeros(flat.shape[0], flat.shape[1] + 1, 1 + counts, dtype=dtype, device=flat.device)
     rows[:, :-1, 0] = flat
     if counts:
@@ -452,9 +451,8 @@ def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
     """``(B, V, C)`` sums over pixels of the rows (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
 
-    The keys are turned into row numbers in place (``best`` is overwritten). Float values are gathered and
-    summed by one ``embedding_bag``, without a ``(B, V, P)`` tensor of values; {0, 1} values (uint8 rows)
-    by a byte gather, 4x less memory traffic.
+    The keys are turned into row numbers in place (``best`` is overwritten); one ``embedding_bag`` gathers and
+    sums, without a ``(B, V, P)`` tensor of values.
     """
     batch = best.shape[0]
     per_object = rows.shape[0] // batch
@@ -462,8 +460,6 @@ def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
         best = best.long()
     best.bitwise_and_((1 << _key_bits(per_object - 1)) - 1)
     best.add_(torch.arange(0, rows.shape[0], per_object, dtype=best.dtype, device=best.device).view(-1, 1, 1))
-    if rows.dtype == torch.uint8:
-        return rows.view(-1).index_select(0, best.view(-1)).view(best.shape).sum(-1, keepdim=True)
     sums = torch.nn.functional.embedding_bag(best.view(-1, best.shape[-1]), rows, mode="sum")
     return sums.view(batch, best.shape[1], rows.shape[1])
 
