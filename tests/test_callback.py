@@ -144,20 +144,26 @@ def test_any_selector_runs_through_the_same_callback(tiny_dataset, tmp_path, sel
     assert len(dm.generated_samples) == 4  # 2 before epoch 0, 2 after it
 
 
-def _fit(root, tmp_path, epochs, ckpt=None):
+#: The per-object (sharded) default and the relative score, which the callback runs batched on rank 0.
+GUIDED = {"per_object": lambda: None, "relative": lambda: ErrorGuidedSelector(relative=True)}
+
+
+def _fit(root, tmp_path, epochs, ckpt=None, selector=None):
     L.seed_everything(0, verbose=False)
     dm = make_datamodule(root, tmp_path)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
-    callback = make_callback(fraction=0.15)
+    callback = make_callback(fraction=0.15, selector=selector)
     make_trainer(tmp_path, epochs, [callback, checkpoint]).fit(TinyUserModel(), datamodule=dm, ckpt_path=ckpt)
     return dm, callback
 
 
 @pytest.mark.slow
-def test_resume_generates_exactly_what_an_uninterrupted_run_does(tiny_dataset, tmp_path):
-    full, full_cb = _fit(tiny_dataset, tmp_path / "full", 4)
-    _fit(tiny_dataset, tmp_path / "part", 2)
-    resumed, resumed_cb = _fit(tiny_dataset, tmp_path / "part", 4, ckpt=str(tmp_path / "part" / "ckpt" / "last.ckpt"))
+@pytest.mark.parametrize("guided", sorted(GUIDED))
+def test_resume_generates_exactly_what_an_uninterrupted_run_does(tiny_dataset, tmp_path, guided):
+    full, full_cb = _fit(tiny_dataset, tmp_path / "full", 4, selector=GUIDED[guided]())
+    _fit(tiny_dataset, tmp_path / "part", 2, selector=GUIDED[guided]())
+    ckpt = str(tmp_path / "part" / "ckpt" / "last.ckpt")
+    resumed, resumed_cb = _fit(tiny_dataset, tmp_path / "part", 4, ckpt=ckpt, selector=GUIDED[guided]())
     assert [c[:4] for c in generated_contents(resumed)] == [c[:4] for c in generated_contents(full)]
     assert generated_contents(resumed) == generated_contents(full)
     assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
@@ -190,15 +196,22 @@ class DatasetDigestProbe(L.Callback):
 
 
 @pytest.mark.slow
-def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path):
+@pytest.mark.parametrize("guided", sorted(GUIDED))
+def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path, guided):
     single = tmp_path / "single"
     dm = make_datamodule(tiny_dataset, single)
-    make_trainer(single, 3, [make_callback(fraction=0.2)]).fit(EmptyPredictionModel(), datamodule=dm)
+    callback = make_callback(fraction=0.2, selector=GUIDED[guided]())
+    make_trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
 
     ddp = tmp_path / "ddp"
     probe = DatasetDigestProbe(str(tmp_path / "digests.jsonl"))
     trainer = make_trainer(
-        ddp, 3, [make_callback(fraction=0.2), probe], devices=2, strategy="ddp_spawn", num_sanity_val_steps=2
+        ddp,
+        3,
+        [make_callback(fraction=0.2, selector=GUIDED[guided]()), probe],
+        devices=2,
+        strategy="ddp_spawn",
+        num_sanity_val_steps=2,
     )
     trainer.fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, ddp))
 

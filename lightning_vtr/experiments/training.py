@@ -102,7 +102,12 @@ _VISIBLE_NMS = {"score": "visible", "min_separation": 30.0}
 #:   suppression, bins sampled with probability proportional to solid angle x score (temperature 1) instead
 #:   of the hard top n; ``"visible_tau3"``: the same at temperature 3 (closer to area-uniform random);
 #:   ``"visible_nms_search"``, ``"visible_tau_search"`` and ``"visible_tau3_search"``: ``"visible_nms"``,
-#:   ``"visible_tau"`` and ``"visible_tau3"`` searching 35 % of the objects into a pool rebuilt at every selection.
+#:   ``"visible_tau"`` and ``"visible_tau3"`` searching 35 % of the objects into a pool rebuilt at every selection;
+#:   ``"visible_tau10_search"``: the same at temperature 10; ``"visible_tau3_search_own"``: ``"visible_tau3_search"``
+#:   sampling each object's view set among all of its category's, its own included; ``"visible_tau3_search_error"``:
+#:   ``"visible_tau3_search"`` giving the new views to the searched objects with the largest error;
+#:   ``"visible_rel_search"`` and ``"visible_rel_tau_search"``: ``"visible_nms_search"`` and ``"visible_tau_search"``
+#:   with scores relative to the category's mean per view (``ErrorGuidedSelector(relative=True)``).
 #:
 #: :func:`make_strategy` and :func:`run_strategy` take these names; their ``selector_kwargs`` and
 #: ``callback_kwargs`` go over the variant's.
@@ -154,6 +159,36 @@ VARIANTS: dict[str, StrategyVariant] = {
         {**_VISIBLE_NMS, "temperature": 3.0},
         {"search_fraction": 0.35, "pool_refresh": True},
         title="Visible + NMS, tau 3, search 35 %",
+    ),
+    "visible_tau10_search": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "temperature": 10.0},
+        {"search_fraction": 0.35, "pool_refresh": True},
+        title="Visible + NMS, tau 10, search 35 %",
+    ),
+    "visible_tau3_search_own": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "temperature": 3.0},
+        {"search_fraction": 0.35, "pool_refresh": True, "pool_prefer_others": False},
+        title="Visible + NMS, tau 3, search 35 %, own sets too",
+    ),
+    "visible_tau3_search_error": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "temperature": 3.0},
+        {"search_fraction": 0.35, "pool_refresh": True, "generate_for": "error"},
+        title="Visible + NMS, tau 3, search 35 %, worst objects",
+    ),
+    "visible_rel_search": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "relative": True},
+        {"search_fraction": 0.35, "pool_refresh": True},
+        title="Visible relative to category + NMS, search 35 %",
+    ),
+    "visible_rel_tau_search": StrategyVariant(
+        "error_guided",
+        {**_VISIBLE_NMS, "relative": True, "temperature": 1.0},
+        {"search_fraction": 0.35, "pool_refresh": True},
+        title="Visible relative to category + NMS, tau 1, search 35 %",
     ),
 }
 

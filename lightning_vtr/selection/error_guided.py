@@ -17,9 +17,9 @@ from lightning_vtr.selection.projection import (
     sample_around_bins,
     visible_error_scores,
 )
-from lightning_vtr.utils.validation import check_choice, check_float, check_int
+from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
-__all__ = ["SCORES", "ErrorGuidedSelector"]
+__all__ = ["SCORES", "ErrorGuidedSelector", "relative_to_category"]
 
 #: The view scores, as ``(error mode, mask, reduction)`` of the error projection; ``"visible"`` projects the
 #: surface of prediction and truth together instead of the error alone (see :func:`visible_error_scores`).
@@ -28,6 +28,28 @@ SCORES: dict[str, tuple[str, str | None, str]] = {
     "released": ("soft", "gt", "mean"),  # the authors' released code: soft error inside GT, mean over hits
     "visible": ("binary", None, "sum"),  # ours: the error on the surface a camera sees, summed
 }
+
+
+def relative_to_category(scores: Tensor, categories: list[str]) -> Tensor:
+    """``(B, V)`` view scores over their category's mean per view, taken over the objects with any error.
+
+    A view no object of the category scores above 0 gets 0; an object without error keeps its zeros. An object
+    alone in its category gets 1 wherever it sees error.
+    """
+    check_categories(categories, scores.shape[0])
+    relative = torch.zeros_like(scores)
+    rows_of: dict[str, list[int]] = {}
+    for row, category in enumerate(categories):
+        rows_of.setdefault(category, []).append(row)
+    for rows in rows_of.values():
+        index = torch.tensor(rows, device=scores.device)
+        group = scores.index_select(0, index)
+        erring = group[group.sum(1) > 0]
+        if len(erring) == 0:
+            continue
+        mean = erring.mean(0)
+        relative.index_copy_(0, index, torch.where(mean > 0, group / mean.clamp_min(torch.finfo(mean.dtype).tiny), 0))
+    return relative
 
 
 class ErrorGuidedSelector(ViewSelector):
@@ -42,7 +64,8 @@ class ErrorGuidedSelector(ViewSelector):
 
     The selections are meant for the per-category :class:`~lightning_vtr.selection.pool.ViewpointPool`
     (``uses_pool = True``). After :meth:`select`, ``last_scores (B, V_c)``, ``last_bins (B, num_views)``
-    and ``last_fallback (B,)`` hold the intermediate results for logging and plots.
+    and ``last_fallback (B,)`` hold the intermediate results for logging and plots (``last_scores``: the
+    relative scores with ``relative=True``).
 
     The view score (``score``):
 
@@ -80,6 +103,12 @@ class ErrorGuidedSelector(ViewSelector):
         fallback: uniform sampler for objects without error: ``"area"`` (uniform on the sphere) or
             ``"angle"`` (uniform yaw and pitch).
         eps: error values ``<= eps`` are transparent to the projection (matters for ``mode="soft"``).
+        relative: ``True`` (ours) divides each object's score of a view by the mean score of that view over
+            the objects of its category in the call (those with any error), so the bins are chosen by where
+            this object is worse than its category, not by the views every object of it gets wrong. The
+            selector is then ``batched``: the callback scores all searched objects in one call (on rank 0
+            under DDP), so a selection depends on the (seed, epoch) and the searched set, not on the object
+            alone.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
@@ -108,6 +137,7 @@ class ErrorGuidedSelector(ViewSelector):
         sigma: float | None = None,
         fallback: Literal["area", "angle"] = "area",
         eps: float = 0.0,
+        relative: bool = False,
     ) -> None:
         self.k = check_bin_interval(k)
         # at most one view per candidate bin: the views are drawn around distinct best bins
@@ -136,6 +166,9 @@ class ErrorGuidedSelector(ViewSelector):
         self.sigma = self.k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)
         self.fallback = check_choice("fallback", fallback, ("area", "angle"))
         self.eps = check_float("eps", eps, minimum=0.0, maximum=1.0, max_open=True)
+        self.relative = check_type("relative", relative, bool)
+        # relative scores compare an object with the others: the callback must pass them all in one call
+        self.batched = self.relative
         self.candidates = candidate_viewpoints(self.k)  # (V_c, 2) degrees, pitch-major
         self.last_scores: Tensor | None = None
         self.last_bins: Tensor | None = None
@@ -189,6 +222,9 @@ class ErrorGuidedSelector(ViewSelector):
         check_categories(categories, predicted.shape[0])
         # 1. score every candidate view by the error it sees
         scores = self.score_views(predicted, target)
+        no_error = scores.sum(dim=1) <= 0
+        if self.relative:
+            scores = relative_to_category(scores, categories)
         # 2. choose bins (the best, apart from each other, or tempered draws) and sample around their centres
         bins = choose_bins(
             scores,
@@ -200,7 +236,6 @@ class ErrorGuidedSelector(ViewSelector):
         )
         views = sample_around_bins(bins, self.k, sigma=self.sigma, generator=generator).to(torch.get_default_dtype())
         # 3. objects without error: no preferred side, sample uniformly
-        no_error = scores.sum(dim=1) <= 0
         count = int(no_error.sum())
         if count:
             uniform = sample_uniform_viewpoints(count * self.num_views, mode=self.fallback, generator=generator)
@@ -215,5 +250,5 @@ class ErrorGuidedSelector(ViewSelector):
             f"{type(self).__name__}(k={self.k}, num_views={self.num_views}, score={self.score!r}, "
             f"threshold={self.threshold}, min_separation={self.min_separation}, temperature={self.temperature}, "
             f"mode={self.mode!r}, mask={self.mask!r}, reduction={self.reduction!r}, sigma={self.sigma}, "
-            f"fallback={self.fallback!r})"
+            f"fallback={self.fallback!r}, relative={self.relative})"
         )

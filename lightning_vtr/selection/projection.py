@@ -433,19 +433,14 @@ def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
     return torch.gather(padded, 1, winner).view_as(best)
 
 
-def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
-    """``(B * (N + 1), C)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
+def _value_rows(flat: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+    """``(B * (N + 1), 1)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
-    In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32. ``counts=True`` adds a
-    second column, 1 for every voxel, so the same gather also counts the hit pixels.
+    In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32.
     """
     dtype = flat.dtype if dtype is None else dtype
     dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
-    rows = torch.zeros(flat.shape[0], flat.shape[1] + 1, 1 + counts, dtype=dtype, device=flat.device)
-    rows[:, :-1, 0] = flat
-    if counts:
-        rows[:, :-1, 1] = 1
-    return rows.view(-1, 1 + counts)
+    return torch.cat([flat.to(dtype), flat.new_zeros(flat.shape[0], 1, dtype=dtype)], 1).view(-1, 1)
 
 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
@@ -514,20 +509,18 @@ def projection_scores(
     total = torch.zeros(batch, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     hits = torch.zeros(batch, viewpoints.shape[0], dtype=torch.int32, device=volumes.device)
     for chunk in _object_chunks(occupied, viewpoints.shape[0]):
-        # values: summed with the number of hits (mean) in one gather; binary: only the hits are counted
-        rows = None if counts_only else _value_rows(flat[chunk], counts=reduction == "mean")
+        # binary: only the hits are counted; values: gathered and summed (after counting the hits, for a mean)
+        rows = None if counts_only else _value_rows(flat[chunk])
         chunk_hits, chunk_total = hits[chunk], total[chunk]
 
         def score(views: Tensor, best: Tensor) -> None:
-            if rows is None:
+            if rows is None or reduction == "mean":
                 count = (best != missed).sum(-1, dtype=torch.int32)
                 chunk_hits.index_copy_(1, views, count)
+            if rows is None:
                 chunk_total.index_copy_(1, views, count.to(dtype))
-                return
-            sums = _hit_sums(best, rows)
-            chunk_total.index_copy_(1, views, sums[..., 0].to(dtype))
-            if sums.shape[-1] > 1:
-                chunk_hits.index_copy_(1, views, sums[..., 1].round().to(torch.int32))
+            else:  # _hit_sums overwrites best: after the count
+                chunk_total.index_copy_(1, views, _hit_sums(best, rows)[..., 0].to(dtype))
 
         _first_hits(occupied[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score)
     if reduction == "sum":

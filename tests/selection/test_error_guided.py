@@ -7,6 +7,7 @@ import torch
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
 from lightning_vtr.selection import ErrorGuidedSelector, ViewSelector, nearest_bins
+from lightning_vtr.selection.error_guided import relative_to_category
 
 
 def side_error_pair(res: int = 12) -> tuple[torch.Tensor, torch.Tensor]:
@@ -116,3 +117,52 @@ def test_score_views_equals_scores_of_the_projection_maps(mode, reduction):
     err = error_volume(pred, gt, mode=mode)
     expected = view_scores(error_projection(err, candidate_viewpoints(60), eps=0.05), reduction=reduction)
     assert torch.allclose(selector.score_views(pred, gt), expected, atol=1e-5)
+
+
+def test_relative_to_category_divides_by_the_category_mean_of_erring_objects():
+    scores = torch.tensor([[2.0, 0.0, 4.0], [6.0, 0.0, 4.0], [0.0, 0.0, 0.0], [5.0, 1.0, 0.0]])
+    got = relative_to_category(scores, ["a", "a", "a", "b"])
+    # category a: the mean over rows 0 and 1 (row 2 has no error) is (4, 0, 4); a view nobody errs in scores 0
+    expected = torch.tensor([[0.5, 0.0, 1.0], [1.5, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    assert torch.equal(got, expected)
+    with pytest.raises(ValueError, match="categories"):
+        relative_to_category(scores, ["a"])
+
+
+def slab_and_wall(res: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both objects wrongly predict a horizontal slab (seen from above and below); object 1 also a wall
+    across the x axis, half the slab's area (seen from the x sides)."""
+    gt = torch.zeros(2, res, res, res)
+    pred = gt.clone()
+    pred[:, :, :, res // 2 - 1] = 1.0
+    pred[1, res // 2 - 1, :, res // 2 :] = 1.0
+    return pred, gt
+
+
+def test_relative_scores_pick_where_an_object_is_worse_than_its_category():
+    pred, gt = slab_and_wall()
+    views = candidate_viewpoints(30)
+    absolute = ErrorGuidedSelector(num_views=1)
+    absolute.select(pred, gt, ["c", "c"], generator=torch.Generator().manual_seed(0))
+    # the slab's silhouette is the largest error for both: absolute scores look from the poles' bins
+    assert views[absolute.last_bins[:, 0]][:, 1].abs().tolist() == [75.0, 75.0]
+    relative = ErrorGuidedSelector(num_views=1, relative=True)
+    assert relative.batched and not absolute.batched
+    relative.select(pred, gt, ["c", "c"], generator=torch.Generator().manual_seed(0))
+    yaw, pitch = views[relative.last_bins[1, 0]].tolist()
+    # what only object 1 gets wrong is the wall: the bins facing it, along the x axis, near the equator
+    assert abs(pitch) == 15.0 and abs(yaw) in (15.0, 165.0)
+    assert torch.equal(relative.last_scores, relative_to_category(absolute.last_scores, ["c", "c"]))
+    # each object alone in its category: relative scores are 1 wherever it sees error
+    relative.select(pred, gt, ["c", "d"], generator=torch.Generator().manual_seed(0))
+    assert torch.equal(relative.last_scores, (absolute.last_scores > 0).to(relative.last_scores.dtype))
+
+
+def test_relative_keeps_the_fallback_of_objects_without_error():
+    pred, gt = side_error_pair()
+    selector = ErrorGuidedSelector(relative=True)
+    selector.select(pred, gt, ["chair", "chair"], generator=torch.Generator().manual_seed(0))
+    assert selector.last_fallback.tolist() == [False, True]
+    assert float(selector.last_scores[1].abs().sum()) == 0.0
+    with pytest.raises(TypeError, match="relative"):
+        ErrorGuidedSelector(relative=1)
