@@ -470,17 +470,21 @@ def _write_chart(
     seeds: list[int],
     view_statistics: dict[str, dict[str, Any]],
 ) -> None:
+    import matplotlib
     import numpy as np
     from matplotlib.figure import Figure  # no pyplot: no global figure manager, no backend switch
 
     panels = 2 if view_statistics else 1
-    fig = Figure(figsize=(8 * panels, 4.2), dpi=120, layout="tight")
+    # the legends go under the panels, two entries a line: the figure grows with the rows
+    legend_lines = math.ceil(len(rows) / 2)
+    fig = Figure(figsize=(8 * panels, 4.2 + 0.2 * legend_lines), dpi=120, layout="constrained")
     axes = fig.subplots(1, panels, squeeze=False)[0]
     ax = axes[0]
     width = 0.8 / max(1, len(rows))
     x = np.arange(len(VIEW_SETS))
-    # one colour per strategy in both panels (the view panel has no row for None-VTR)
-    colours = {title: f"C{i % 10}" for i, title in enumerate(rows)}
+    # one colour per strategy in both panels (the view panel has no row for None-VTR), distinct up to 20 rows
+    palette = [f"C{i}" for i in range(10)] if len(rows) <= 10 else [matplotlib.colormaps["tab20"](i) for i in range(20)]
+    colours = {title: palette[i % len(palette)] for i, title in enumerate(rows)}
     for i, (title, run) in enumerate(rows.items()):
         stats = [_estimate(list(_values(payloads, run, v, "iou@0.4", seeds).values())) for v in VIEW_SETS]
         means = [100 * e.mean if e else math.nan for e in stats]
@@ -499,7 +503,7 @@ def _write_chart(
     ax.set_ylabel("mIoU@0.4 (%)")
     spread = f" (mean, 95 % CI over {len(seeds)} seeds)" if len(seeds) > 1 else ""
     ax.set_title(f"Reconstruction IoU per test view set{spread}")
-    ax.legend(ncol=3, fontsize=8)
+    ax.legend(ncol=2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08))
     ax.grid(axis="y", alpha=0.3)
     if view_statistics:
         ax = axes[1]
@@ -515,7 +519,7 @@ def _write_chart(
         ax.set_xlabel("pitch of the generated training views (degrees)")
         ax.set_ylabel("share of views (%)")
         ax.set_title("Where each strategy's training views went")
-        ax.legend(fontsize=7)
+        ax.legend(ncol=2, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14))
         ax.grid(axis="y", alpha=0.3)
     fig.savefig(path)
 
