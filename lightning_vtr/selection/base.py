@@ -69,7 +69,8 @@ class ViewSelector(abc.ABC):
     uses_pool: bool = False
     #: Whether ``select`` needs a :class:`SelectionContext` (the model and synthesizer).
     needs_context: bool = False
-    #: Whether the selector learns across objects (VIAT's mixtures, MVTN's network): the callback then calls
+    #: Whether the selector learns across objects (VIAT's mixtures, MVTN's network) or compares them
+    #: (``ErrorGuidedSelector(relative=True)``): the callback then calls
     #: ``select`` once per epoch with all searched objects, on global rank 0, and broadcasts the result and
     #: the selector's state so every rank stays identical. Stateless selectors are called per object, sharded.
     batched: bool = False

@@ -444,7 +444,7 @@ def _value_rows(flat: Tensor, dtype: torch.dtype | None = None) -> Tensor:
 
 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
-    """``(B, V, C)`` sums over pixels of the rows (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
+    """``(B, V)`` sums over pixels of the values (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
 
     The keys are turned into row numbers in place (``best`` is overwritten); one ``embedding_bag`` gathers and
     sums, without a ``(B, V, P)`` tensor of values.
@@ -456,7 +456,7 @@ def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
     best.bitwise_and_((1 << _key_bits(per_object - 1)) - 1)
     best.add_(torch.arange(0, rows.shape[0], per_object, dtype=best.dtype, device=best.device).view(-1, 1, 1))
     sums = torch.nn.functional.embedding_bag(best.view(-1, best.shape[-1]), rows, mode="sum")
-    return sums.view(batch, best.shape[1], rows.shape[1])
+    return sums.view(batch, best.shape[1])
 
 
 def _is_binary(flat: Tensor, eps: float) -> bool:
@@ -520,7 +520,7 @@ def projection_scores(
             if rows is None:
                 chunk_total.index_copy_(1, views, count.to(dtype))
             else:  # _hit_sums overwrites best: after the count
-                chunk_total.index_copy_(1, views, _hit_sums(best, rows)[..., 0].to(dtype))
+                chunk_total.index_copy_(1, views, _hit_sums(best, rows).to(dtype))
 
         _first_hits(occupied[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score)
     if reduction == "sum":
@@ -577,7 +577,7 @@ def visible_error_scores(
             rows, flags = _value_rows(errors[chunk], predicted.dtype), None
 
             def score(views: Tensor, best: Tensor) -> None:
-                chunk_scores.index_copy_(1, views, _hit_sums(best, rows)[..., 0].to(scores.dtype))
+                chunk_scores.index_copy_(1, views, _hit_sums(best, rows).to(scores.dtype))
 
         _first_hits(surface[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score, flags)
     return scores
