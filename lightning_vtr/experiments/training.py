@@ -85,6 +85,8 @@ class StrategyVariant:
 
 
 _VISIBLE_NMS = {"score": "visible", "min_separation": 30.0}
+# the released code's search: 35 % of the objects scored into a pool rebuilt at every selection
+_SEARCHED = {"search_fraction": 0.35, "pool_refresh": True}
 #: Strategy name -> :class:`StrategyVariant`, in the report's row order: the paper's Table 1 strategies
 #: (:data:`STRATEGIES`, each selector with its package defaults, so ``"error_guided"`` is whatever
 #: ``ErrorGuidedSelector()`` and ``ErrorGuidedViewAugmentation()`` default to), the second random baseline,
@@ -145,49 +147,49 @@ VARIANTS: dict[str, StrategyVariant] = {
     "visible_nms_search": StrategyVariant(
         "error_guided",
         _VISIBLE_NMS,
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible + NMS, search 35 %",
     ),
     "visible_tau_search": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "temperature": 1.0},
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible + NMS, tau 1, search 35 %",
     ),
     "visible_tau3_search": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "temperature": 3.0},
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible + NMS, tau 3, search 35 %",
     ),
     "visible_tau10_search": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "temperature": 10.0},
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible + NMS, tau 10, search 35 %",
     ),
     "visible_tau3_search_own": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "temperature": 3.0},
-        {"search_fraction": 0.35, "pool_refresh": True, "pool_prefer_others": False},
+        {**_SEARCHED, "pool_prefer_others": False},
         title="Visible + NMS, tau 3, search 35 %, own sets too",
     ),
     "visible_tau3_search_error": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "temperature": 3.0},
-        {"search_fraction": 0.35, "pool_refresh": True, "generate_for": "error"},
+        {**_SEARCHED, "generate_for": "error"},
         title="Visible + NMS, tau 3, search 35 %, worst objects",
     ),
     "visible_rel_search": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "relative": True},
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible relative to category + NMS, search 35 %",
     ),
     "visible_rel_tau_search": StrategyVariant(
         "error_guided",
         {**_VISIBLE_NMS, "relative": True, "temperature": 1.0},
-        {"search_fraction": 0.35, "pool_refresh": True},
+        _SEARCHED,
         title="Visible relative to category + NMS, tau 1, search 35 %",
     ),
 }
