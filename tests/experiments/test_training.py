@@ -301,6 +301,18 @@ def test_variants_build_their_selector_and_callback_settings():
     merged = build("visible_nms_search", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
     assert (merged.selector.k, merged.selector.score, merged.selector.min_separation) == (15, "visible", 30.0)
     assert (merged.search_fraction, merged.pool_refresh) == (0.5, True)
+    # The fresh variants fix their own budget (20 %, latest selection only) over the config's 10 %.
+    for name, mode in (("random_fresh", "angle"), ("random_area_fresh", "area")):
+        fresh = build(name)
+        assert (fresh.selector.mode, fresh.fraction, fresh.max_samples, fresh.pool) == (mode, 0.2, 34, None)
+    for name, temperature in (("visible_tau3_search_fresh", 3.0), ("visible_tau10_search_fresh", 10.0)):
+        fresh = build(name)
+        assert (fresh.selector.score, fresh.selector.min_separation, fresh.selector.temperature) == (
+            "visible",
+            30.0,
+            temperature,
+        )
+        assert (fresh.fraction, fresh.max_samples, fresh.search_fraction, fresh.pool_refresh) == (0.2, 34, 0.35, True)
 
 
 class _Sleepy(L.Callback):
