@@ -4,11 +4,17 @@ Runs full optimisation steps (forward, loss, backward, Adam) on random images an
 warm-up steps, with a fixed number of torch threads. Add a model by adding a factory to ``MODELS``.
 
     python benchmarks/train_throughput.py --model pix2vox-tiny --batch-size 16 --views 3 --threads 2
+
+``--jobs J`` also runs J processes at once, each with ``threads // J`` threads (what ``lightning-vtr report
+--jobs J`` does with its fits), and prints their summed rate against the one-process rate of the same run:
+
+    python benchmarks/train_throughput.py --batch-size 8 --threads 2 --jobs 2 --steps 20
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import time
 from collections.abc import Callable
 
@@ -45,6 +51,25 @@ def measure(model: VoxelReconstructionModule, batch_size: int, views: int, steps
     return batch_size * steps / (time.perf_counter() - start)
 
 
+def _rate_in_child(name: str, threads: int, batch_size: int, views: int, steps: int, warmup: int, start_at) -> float:
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = MODELS[name]()
+    start_at.wait()  # every process starts timing together, after its imports and model build
+    return measure(model, batch_size, views, steps, warmup)
+
+
+def _concurrent_rate(args: argparse.Namespace) -> float:
+    """Summed samples/s of ``args.jobs`` processes training at once, ``threads // jobs`` threads each."""
+    context = multiprocessing.get_context("spawn")
+    with context.Manager() as manager:
+        start_at = manager.Barrier(args.jobs)
+        threads = max(1, args.threads // args.jobs)
+        work = (args.model, threads, args.batch_size, args.views, args.steps, args.warmup, start_at)
+        with context.Pool(args.jobs) as pool:
+            return sum(pool.starmap(_rate_in_child, [work] * args.jobs))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", choices=sorted(MODELS), default="pix2vox-tiny")
@@ -53,6 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--jobs", type=int, default=1, help="also measure this many processes at once")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -64,6 +90,12 @@ def main(argv: list[str] | None = None) -> None:
         f"(batch {args.batch_size}, {args.views} views, {model.image_size} px, {n_params / 1e6:.2f} M params, "
         f"{args.threads} threads, {args.steps} timed steps)"
     )
+    if args.jobs > 1:
+        together = _concurrent_rate(args)
+        print(
+            f"{args.jobs} processes x {max(1, args.threads // args.jobs)} thread(s) at once: {together:.1f} training "
+            f"samples/s in all, {together / rate:.2f}x one process with {args.threads} threads"
+        )
 
 
 if __name__ == "__main__":

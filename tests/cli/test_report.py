@@ -97,6 +97,8 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
     assert config.validation_triplets is None
     assert main(["report", "--validation-triplets", "12"]) == 0 and captured[-1].validation_triplets == 12
+    assert config.jobs == 1
+    assert main(["report", "--jobs", "2"]) == 0 and captured[-1].jobs == 2
 
 
 @pytest.mark.parametrize(
@@ -107,6 +109,7 @@ def test_cli_defaults_are_the_report_defaults(captured):
         (["--ablations", "k", "--no-ablations"], "not allowed with argument"),
         (["--test-triplets", "0"], "positive integer"),
         (["--validation-triplets", "0"], "positive integer"),
+        (["--jobs", "0"], "positive integer"),
         (["--model", "unet"], "invalid choice: 'unet'"),
         (["--finetune-lr", "linear"], "invalid choice: 'linear'"),
         (["--recipe", "imagenet"], "invalid choice: 'imagenet'"),

@@ -682,3 +682,92 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
     assert validated == [] and "Validation split" not in plain["markdown"]
     with pytest.raises(ValueError, match=r"`validation_triplets` must be an int >= 1, got 0"):
         ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_triplets=0)
+
+
+def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_count(tiny_dataset, tmp_path, capsys):
+    import torch
+
+    def config(out: str, jobs: int) -> ReportConfig:
+        experiment_config = default_experiment(
+            data=str(tiny_dataset),
+            out=str(tmp_path / out),
+            pretrain_epochs=1,
+            finetune_epochs=2,
+            fraction=0.15,
+            batch_size=4,
+            test_repeats=1,
+            accelerator="cpu",
+            trainer_kwargs={"limit_train_batches": 2, "limit_val_batches": 1, "limit_test_batches": 2},
+        )
+        return ReportConfig(
+            experiment_config,
+            seeds=[0, 1],
+            strategies=["none", "random", "error_guided", "paper"],
+            callback_kwargs={"progress_bar": False},
+            validation_triplets=1,
+            jobs=jobs,
+        )
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the children of jobs=2 get max(1, 1 // 2) = 1 thread too
+    try:
+        sequential = run_report(config("one", 1))
+        capsys.readouterr()
+        parallel = run_report(config("two", 2))
+    finally:
+        torch.set_num_threads(threads)
+    lines = capsys.readouterr().out.splitlines()
+    # 2 pretrainings + 2 x 3 fits ("paper" is the default's run, fitted once), one line each.
+    assert lines[0].startswith("report: 8 fits on 2 processes, 1 torch thread(s) each")
+    done = [line for line in lines if " done in " in line]
+    assert len(done) == 8 and done[-1].startswith("report: [8/8] seed ")
+    assert sum("pretraining" in line for line in done) == 2
+    for seed in (0, 1):
+        logs = tmp_path / "two" / f"seed_{seed}" / "logs"
+        assert sorted(p.name for p in logs.iterdir()) == ["error_guided.log", "none.log", "pretrain.log", "random.log"]
+        assert "epoch 1/2" in (logs / "random.log").read_text()  # the fit's own output went to its log
+    for run in ("none", "random", "error_guided", "paper"):
+        for seed in (0, 1):
+            one, two = sequential["runs"][run][seed], parallel["runs"][run][seed]
+            assert two["results"] == one["results"], (run, seed)
+            assert two["generated_samples"] == one["generated_samples"], (run, seed)
+    assert (tmp_path / "two" / "seed_1" / "random" / "validation.json").read_text() == (
+        tmp_path / "one" / "seed_1" / "random" / "validation.json"
+    ).read_text()
+    assert (
+        parallel["markdown"].split("## Table 1")[1].split("## Where the time")[0]
+        == sequential["markdown"].split("## Table 1")[1].split("## Where the time")[0]
+    )
+
+
+def test_parallel_report_names_the_failed_fit_and_keeps_the_finished_ones(tiny_dataset, tmp_path):
+    experiment_config = default_experiment(
+        data=str(tiny_dataset),
+        out=str(tmp_path / "r"),
+        pretrain_epochs=1,
+        finetune_epochs=1,
+        batch_size=4,
+        accelerator="cpu",
+        trainer_kwargs={"limit_train_batches": 1, "limit_val_batches": 1, "limit_test_batches": 1},
+    )
+    # VIAT with a population of 0 passes the report's checks and fails inside the child, when it is built.
+    config = ReportConfig(
+        experiment_config, seeds=[0], strategies=["none", "viat"], selector_kwargs={"viat": {"population": 0}}, jobs=2
+    )
+    with pytest.raises(RuntimeError, match=r"seed 0, viat failed .*population.*logs/viat.log"):
+        run_report(config)
+    assert (tmp_path / "r" / "seed_0" / "pretrain" / "pretrained.ckpt").is_file()
+    assert "population" in (tmp_path / "r" / "seed_0" / "logs" / "viat.log").read_text()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"jobs": 0}, "`jobs` must be an int >= 1, got 0"),
+        ({"jobs": 2, "experiment": default_experiment(devices=2)}, "jobs=2 with experiment.devices=2"),
+        ({"jobs": 2, "synthesizer": lambda views: views}, "cannot be pickled"),
+    ],
+)
+def test_config_rejects_jobs_it_cannot_run(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ReportConfig(**kwargs)
