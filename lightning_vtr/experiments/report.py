@@ -281,6 +281,25 @@ def _merge_identical(runs: list[_Run], config: ReportConfig) -> list[_Run]:
     return out
 
 
+def _fit_and_validate(
+    config: ReportConfig, seed_exp: ExperimentConfig, pretrained: Path, run: _Run
+) -> tuple[dict, dict | None]:
+    """One run's fit and test (``results.json`` payload) and, when the report validates, its validation results;
+    both cached in the run's directory."""
+    payload = training.run_strategy(
+        run.strategy,
+        seed_exp,
+        pretrained,
+        run_name=run.name,
+        synthesizer=config.synthesizer,
+        selector_kwargs=run.selector_kwargs,
+        callback_kwargs={**config.callback_kwargs, **run.callback_kwargs},
+    )
+    if config.validation_triplets is None:
+        return payload, None
+    return payload, training.validate_run(seed_exp, Path(seed_exp.out) / run.name, config.validation_triplets)
+
+
 def _log_path(config: ReportConfig, seed: int, run: _Run | None) -> Path:
     return Path(config.seed_config(seed).out) / "logs" / f"{'pretrain' if run is None else run.name}.log"
 
@@ -300,17 +319,7 @@ def _fit_unit(config: ReportConfig, seed: int, run: _Run | None, threads: int) -
         try:
             pretrained = training.pretrain(seed_exp)
             if run is not None:
-                training.run_strategy(
-                    run.strategy,
-                    seed_exp,
-                    pretrained,
-                    run_name=run.name,
-                    synthesizer=config.synthesizer,
-                    selector_kwargs=run.selector_kwargs,
-                    callback_kwargs={**config.callback_kwargs, **run.callback_kwargs},
-                )
-                if config.validation_triplets is not None:
-                    training.validate_run(seed_exp, Path(seed_exp.out) / run.name, config.validation_triplets)
+                _fit_and_validate(config, seed_exp, pretrained, run)
         except BaseException:
             traceback.print_exc()  # into the log, beside the fit's own output
             raise
@@ -783,19 +792,10 @@ def run_report(config: ReportConfig) -> dict:
             if run.single_view_of is not None:
                 payloads[run.name][seed] = _single_view(run, seed_exp, payloads[run.single_view_of][seed])
                 continue
-            payloads[run.name][seed] = training.run_strategy(
-                run.strategy,
-                seed_exp,
-                pretrained,
-                run_name=run.name,
-                synthesizer=config.synthesizer,
-                selector_kwargs=run.selector_kwargs,
-                callback_kwargs={**config.callback_kwargs, **run.callback_kwargs},
-            )
+            payloads[run.name][seed], validated = _fit_and_validate(config, seed_exp, pretrained, run)
             views[run.name][seed] = _selection_view_sets(Path(seed_exp.out) / run.name)
-            if config.validation_triplets is not None:
-                results = training.validate_run(seed_exp, Path(seed_exp.out) / run.name, config.validation_triplets)
-                validation[run.name][seed] = {"results": results}
+            if validated is not None:
+                validation[run.name][seed] = {"results": validated}
     wall = time.perf_counter() - start
 
     seeds = list(config.seeds)
