@@ -300,6 +300,29 @@ def _fit_and_validate(
     return payload, training.validate_run(seed_exp, Path(seed_exp.out) / run.name, config.validation_triplets)
 
 
+@contextlib.contextmanager
+def _log_handlers_to(stream: Any) -> Any:
+    """Point every logging handler that writes to the console (Lightning's "GPU available" lines) at ``stream``
+    for the block; ``redirect_stdout`` alone misses them, as they hold the console stream they were made with."""
+    import logging
+    import sys
+
+    loggers = [
+        logging.getLogger(),
+        *(v for v in logging.Logger.manager.loggerDict.values() if isinstance(v, logging.Logger)),
+    ]
+    moved = []
+    for logger in loggers:
+        for handler in logger.handlers:
+            if isinstance(handler, logging.StreamHandler) and handler.stream in (sys.__stdout__, sys.__stderr__):
+                moved.append((handler, handler.setStream(stream)))
+    try:
+        yield
+    finally:
+        for handler, previous in moved:
+            handler.setStream(previous)
+
+
 def _log_path(config: ReportConfig, seed: int, run: _Run | None) -> Path:
     return Path(config.seed_config(seed).out) / "logs" / f"{'pretrain' if run is None else run.name}.log"
 
@@ -315,7 +338,12 @@ def _fit_unit(config: ReportConfig, seed: int, run: _Run | None, threads: int) -
     seed_exp = config.seed_config(seed)
     log = _log_path(config, seed, run)
     log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "a", buffering=1) as stream, contextlib.redirect_stdout(stream), contextlib.redirect_stderr(stream):
+    with (
+        open(log, "a", buffering=1) as stream,
+        contextlib.redirect_stdout(stream),
+        contextlib.redirect_stderr(stream),
+        _log_handlers_to(stream),
+    ):
         try:
             pretrained = training.pretrain(seed_exp)
             if run is not None:

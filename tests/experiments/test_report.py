@@ -684,7 +684,7 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
         ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_triplets=0)
 
 
-def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_count(tiny_dataset, tmp_path, capsys):
+def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_count(tiny_dataset, tmp_path, capfd):
     import torch
 
     def config(out: str, jobs: int) -> ReportConfig:
@@ -712,11 +712,13 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
     torch.set_num_threads(1)  # the children of jobs=2 get max(1, 1 // 2) = 1 thread too
     try:
         sequential = run_report(config("one", 1))
-        capsys.readouterr()
+        capfd.readouterr()
         parallel = run_report(config("two", 2))
     finally:
         torch.set_num_threads(threads)
-    lines = capsys.readouterr().out.splitlines()
+    captured = capfd.readouterr()  # the children's file descriptors too
+    assert "GPU available" not in captured.out + captured.err  # Lightning's log lines went to the fits' logs
+    lines = captured.out.splitlines()
     # 2 pretrainings + 2 x 3 fits ("paper" is the default's run, fitted once), one line each.
     assert lines[0].startswith("report: 8 fits on 2 processes, 1 torch thread(s) each")
     done = [line for line in lines if " done in " in line]
@@ -725,7 +727,8 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
     for seed in (0, 1):
         logs = tmp_path / "two" / f"seed_{seed}" / "logs"
         assert sorted(p.name for p in logs.iterdir()) == ["error_guided.log", "none.log", "pretrain.log", "random.log"]
-        assert "epoch 1/2" in (logs / "random.log").read_text()  # the fit's own output went to its log
+        log = (logs / "random.log").read_text()
+        assert "epoch 1/2" in log and "GPU available" in log  # the fit's own output went to its log
     for run in ("none", "random", "error_guided", "paper"):
         for seed in (0, 1):
             one, two = sequential["runs"][run][seed], parallel["runs"][run][seed]
