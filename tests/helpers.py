@@ -19,6 +19,7 @@ from torch import nn
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data.datamodule import VTRDataModule
+from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.synthesis.render import RenderSynthesizer
 
 __all__ = [
@@ -214,3 +215,36 @@ def write_rendering_layout(
     split_file = root / "split.json"
     split_file.write_text(json.dumps([{"taxonomy_id": "03001627", "taxonomy_name": "chair", **by_split}]))
     return {"rendering_root": str(render_root), "voxel_root": str(vox_root), "split_file": str(split_file)}
+
+
+class ViewpointSynthesizer(Synthesizer):
+    """Writes each target viewpoint into its image: red = yaw, green = pitch, in 16-bit across 2 pixels."""
+
+    image_size = 2
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def synthesize(self, requests: list[SynthesisRequest]) -> list[np.ndarray]:
+        self.calls += 1
+        out = []
+        for req in requests:
+            vp = np.asarray(req.target_viewpoints, dtype=np.float64)
+            code = np.round((vp + [180.0, 90.0]) / [360.0, 180.0] * 65535).astype(np.int64)  # (T, 2)
+            img = np.zeros((len(vp), 2, 2, 4), np.uint8)
+            img[:, 0, 0, :2] = code // 256
+            img[:, 0, 1, :2] = code % 256
+            img[..., 3] = 255
+            out.append(img)
+        return out
+
+
+def viewpoint_transform(images: np.ndarray) -> torch.Tensor:
+    """(T, 2, 2, 4) uint8 images of :class:`ViewpointSynthesizer` -> (T, 3, 2, 2) float64, values kept."""
+    return torch.from_numpy(images[..., :3].astype(np.float64)).permute(0, 3, 1, 2)  # (T, 3, 2, 2)
+
+
+def decode_viewpoints(images: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 2, 2) images of :class:`ViewpointSynthesizer` -> (N, 2) viewpoints in degrees."""
+    code = images[:, :2, 0, 0] * 256 + images[:, :2, 0, 1]
+    return code / 65535 * torch.tensor([360.0, 180.0], dtype=images.dtype) - torch.tensor([180.0, 90.0])

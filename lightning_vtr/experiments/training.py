@@ -200,6 +200,15 @@ VARIANTS: dict[str, StrategyVariant] = {
         _SEARCHED,
         title="Visible relative to category + NMS, tau 1, search 35 %",
     ),
+    "input_nms": StrategyVariant(
+        "error_guided", {"score": "input", "min_separation": 30.0}, {"use_pool": False}, title="Input + NMS"
+    ),
+    "input_tau": StrategyVariant(
+        "error_guided",
+        {"score": "input", "min_separation": 30.0, "temperature": 1.0},
+        {"use_pool": False},
+        title="Input + NMS, tau 1",
+    ),
     "random_fresh": StrategyVariant("random", {"mode": "angle"}, _FRESH, title="Random, 20 % fresh"),
     "random_area_fresh": StrategyVariant("random", {"mode": "area"}, _FRESH, title="Random (area-uniform), 20 % fresh"),
     "visible_tau3_search_fresh": StrategyVariant(

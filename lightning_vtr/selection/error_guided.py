@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -27,6 +29,7 @@ SCORES: dict[str, tuple[str, str | None, str]] = {
     "paper": ("binary", None, "sum"),  # the paper: binary error, summed first-hit map
     "released": ("soft", "gt", "mean"),  # the authors' released code: soft error inside GT, mean over hits
     "visible": ("binary", None, "sum"),  # ours: the error on the surface a camera sees, summed
+    "input": ("binary", None, "sum"),  # ours: the model's loss given that view as input (no projection)
 }
 
 
@@ -78,6 +81,11 @@ class ErrorGuidedSelector(ViewSelector):
     * ``"visible"`` (ours): what a camera at that viewpoint would see wrong. The first hit along each ray on
       the union of predicted and ground-truth occupancy, valued by the (binary) error there, summed
       (:func:`~lightning_vtr.selection.projection.visible_error_scores`). Side-aware by construction.
+    * ``"input"`` (ours, the input side): the model's reconstruction loss when it is *given* the object's
+      image from that viewpoint, alone. Every bin centre is synthesized and predicted from, so the selector
+      needs a :class:`~lightning_vtr.selection.base.SelectionContext` (``needs_context`` is then ``True``):
+      ``V_c`` images and single-view predictions per object (72 at ``K = 30``). It asks which input views
+      the model fails on, where the other scores ask where its output from the training views is wrong.
 
     Which bins are kept (``min_separation``, ``temperature``; see
     :func:`~lightning_vtr.selection.diversity.choose_bins`): by default the hard top ``num_views``;
@@ -88,7 +96,7 @@ class ErrorGuidedSelector(ViewSelector):
     Args:
         k: bin interval ``K`` in degrees; must divide 180 (30 gives 72 candidate views).
         num_views: ``n``, views selected per object (the number of input views, 3).
-        score: ``"paper"``, ``"released"`` or ``"visible"`` (see above).
+        score: ``"paper"``, ``"released"``, ``"visible"`` or ``"input"`` (see above).
         threshold: binarisation threshold of the prediction.
         min_separation: ``None`` for no suppression; else the angle in degrees within which a chosen bin
             (or its antipode) forbids other bins. ``0`` forbids only the antipode.
@@ -98,7 +106,7 @@ class ErrorGuidedSelector(ViewSelector):
             ``"none"`` every error.
         reduction: override of the score's per-view reduction, ``"sum"`` or ``"mean"`` over hit pixels.
             ``None`` (the default) for ``mode``, ``mask`` and ``reduction`` takes the value of ``score``;
-            ``score="visible"`` takes ``mode`` only.
+            ``score="visible"`` takes ``mode`` only; ``score="input"`` takes none of them.
         sigma: sampling standard deviation in degrees; ``None`` means ``K / 6``.
         fallback: uniform sampler for objects without error: ``"area"`` (uniform on the sphere) or
             ``"angle"`` (uniform yaw and pitch).
@@ -109,6 +117,7 @@ class ErrorGuidedSelector(ViewSelector):
             selector is then ``batched``: the callback scores all searched objects in one call (on rank 0
             under DDP), so a selection depends on the (seed, epoch) and the searched set, not on the object
             alone.
+        model_batch_size: most single-view predictions per model call for ``score="input"``.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
@@ -127,7 +136,7 @@ class ErrorGuidedSelector(ViewSelector):
         self,
         k: int = 30,
         num_views: int = 3,
-        score: Literal["paper", "released", "visible"] = "paper",
+        score: Literal["paper", "released", "visible", "input"] = "paper",
         threshold: float = 0.4,
         min_separation: float | None = None,
         temperature: float | None = None,
@@ -138,6 +147,7 @@ class ErrorGuidedSelector(ViewSelector):
         fallback: Literal["area", "angle"] = "area",
         eps: float = 0.0,
         relative: bool = False,
+        model_batch_size: int = 72,
     ) -> None:
         self.k = check_bin_interval(k)
         # at most one view per candidate bin: the views are drawn around distinct best bins
@@ -156,6 +166,12 @@ class ErrorGuidedSelector(ViewSelector):
             raise ValueError(
                 f"`mask` and `reduction` do not apply to score='visible', got mask={mask!r}, reduction={reduction!r}"
             )
+        if score == "input" and (mode is not None or mask is not None or reduction is not None):
+            # the input score is the model's loss, not a projection of an error volume
+            raise ValueError(
+                "`mode`, `mask` and `reduction` do not apply to score='input', got "
+                f"mode={mode!r}, mask={mask!r}, reduction={reduction!r}"
+            )
         default_mode, default_mask, default_reduction = SCORES[score]
         self.mode = check_choice("mode", default_mode if mode is None else mode, ("binary", "soft"))
         mask = default_mask if mask is None else check_choice("mask", mask, ("gt", "none"))
@@ -169,6 +185,9 @@ class ErrorGuidedSelector(ViewSelector):
         self.relative = check_type("relative", relative, bool)
         # relative scores compare an object with the others: the callback must pass them all in one call
         self.batched = self.relative
+        # the input score renders every candidate view and queries the model
+        self.needs_context = self.score == "input"
+        self.model_batch_size = check_int("model_batch_size", model_batch_size, minimum=1)
         self.candidates = candidate_viewpoints(self.k)  # (V_c, 2) degrees, pitch-major
         self.last_scores: Tensor | None = None
         self.last_bins: Tensor | None = None
@@ -178,8 +197,13 @@ class ErrorGuidedSelector(ViewSelector):
         """``(B, R, R, R)`` error volume with this selector's threshold, mode and mask."""
         return error_volume(predicted, target, threshold=self.threshold, mode=self.mode, mask=self.mask)
 
-    def score_views(self, predicted: Tensor, target: Tensor) -> Tensor:
-        """Scores ``(B, V_c)`` of every candidate viewpoint (``candidate_viewpoints(k)`` order)."""
+    def score_views(self, predicted: Tensor, target: Tensor, context: SelectionContext | None = None) -> Tensor:
+        """Scores ``(B, V_c)`` of every candidate viewpoint (``candidate_viewpoints(k)`` order).
+
+        ``context`` is needed by ``score="input"`` only (see :meth:`input_scores`).
+        """
+        if self.score == "input":
+            return self.input_scores(target, context).to(predicted.dtype)
         if self.score == "visible":
             predicted, target = check_volume_pair(predicted, target)
             return visible_error_scores(
@@ -202,6 +226,50 @@ class ErrorGuidedSelector(ViewSelector):
             binary=self.mode == "binary",
         ).to(predicted.dtype)
 
+    @torch.no_grad()
+    def input_scores(self, target: Tensor, context: SelectionContext | None) -> Tensor:
+        """``(B, V_c)`` loss of the model given each object's image from each bin centre as its only view.
+
+        One synthesizer call renders every candidate of every object; the model sees ``(N, 1, 3, h, w)``
+        batches of at most ``model_batch_size``; ``context.loss_fn`` compares each prediction with the
+        object's ground truth.
+
+        Raises:
+            ValueError: no context (or one without model, synthesizer, transform or loss), a request count
+                other than ``B``, or a synthesizer that returns another number of objects or images.
+        """
+        if context is None or any(
+            getattr(context, name) is None for name in ("model", "synthesizer", "transform", "loss_fn")
+        ):
+            raise ValueError(
+                "ErrorGuidedSelector(score='input') needs a SelectionContext with model, synthesizer, transform "
+                "and loss_fn: it renders every candidate view and scores the model's loss on it; the "
+                "ErrorGuidedViewAugmentation callback passes one"
+            )
+        batch, n_views = target.shape[0], self.candidates.shape[0]
+        if len(context.requests) != batch:
+            raise ValueError(
+                f"`context.requests` must hold one SynthesisRequest per object: expected {batch}, "
+                f"got {len(context.requests)}"
+            )
+        if batch == 0:
+            return target.new_zeros((0, n_views), dtype=torch.float32)
+        requests = [dataclasses.replace(req, target_viewpoints=self.candidates.float()) for req in context.requests]
+        images = context.synthesizer.synthesize(requests)
+        if len(images) != batch or any(len(img) != n_views for img in images):
+            counts = [len(img) for img in images]
+            raise ValueError(
+                f"The synthesizer returned {counts} images for {batch} objects of {n_views} candidate views each"
+            )
+        inputs = torch.cat([torch.as_tensor(context.transform(np.asarray(img))) for img in images])
+        reference = target.to(context.device, torch.float32).repeat_interleave(n_views, dim=0)
+        losses = []
+        for start in range(0, inputs.shape[0], self.model_batch_size):
+            chunk = inputs[start : start + self.model_batch_size, None].to(context.device)
+            pred = context.model.predict_voxels(chunk)
+            losses.append(torch.as_tensor(context.loss_fn(pred, reference[start : start + len(chunk)])).reshape(-1))
+        return torch.cat(losses).reshape(batch, n_views).float().cpu().clamp_min(0.0)
+
     def select(
         self,
         predicted: Tensor,
@@ -221,7 +289,7 @@ class ErrorGuidedSelector(ViewSelector):
         predicted, target = check_volume_pair(predicted, target)
         check_categories(categories, predicted.shape[0])
         # 1. score every candidate view by the error it sees
-        scores = self.score_views(predicted, target)
+        scores = self.score_views(predicted, target, context)
         no_error = scores.sum(dim=1) <= 0
         if self.relative:
             scores = relative_to_category(scores, categories)
@@ -250,5 +318,5 @@ class ErrorGuidedSelector(ViewSelector):
             f"{type(self).__name__}(k={self.k}, num_views={self.num_views}, score={self.score!r}, "
             f"threshold={self.threshold}, min_separation={self.min_separation}, temperature={self.temperature}, "
             f"mode={self.mode!r}, mask={self.mask!r}, reduction={self.reduction!r}, sigma={self.sigma}, "
-            f"fallback={self.fallback!r}, relative={self.relative})"
+            f"fallback={self.fallback!r}, relative={self.relative}, model_batch_size={self.model_batch_size})"
         )

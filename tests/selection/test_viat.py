@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import one_thread
+from helpers import ViewpointSynthesizer, decode_viewpoints, one_thread, viewpoint_transform
 
 from lightning_vtr.geometry import angular_distance, wrap_yaw
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.selection.viat import VIATSelector, _nes_utilities
-from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+from lightning_vtr.synthesis.base import SynthesisRequest
 
 # These tensors are tiny: on the shared 2-core machine intra-op threads only add contention.
 _one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
@@ -20,38 +20,6 @@ _one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 ADVERSARIAL = torch.tensor([90.0, -45.0])  # where the fake model fails most (degrees)
 WIDTH = 40.0  # degrees
 R = 4
-
-
-class _ViewpointSynthesizer(Synthesizer):
-    """Writes each target viewpoint into its image: red = yaw, green = pitch, in 16-bit across 2 pixels."""
-
-    image_size = 2
-
-    def __init__(self) -> None:
-        self.calls = 0
-
-    def synthesize(self, requests: list[SynthesisRequest]) -> list[np.ndarray]:
-        self.calls += 1
-        out = []
-        for req in requests:
-            vp = np.asarray(req.target_viewpoints, dtype=np.float64)
-            code = np.round((vp + [180.0, 90.0]) / [360.0, 180.0] * 65535).astype(np.int64)  # (T, 2)
-            img = np.zeros((len(vp), 2, 2, 4), np.uint8)
-            img[:, 0, 0, :2] = code // 256
-            img[:, 0, 1, :2] = code % 256
-            img[..., 3] = 255
-            out.append(img)
-        return out
-
-
-def _transform(images: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(images[..., :3].astype(np.float64)).permute(0, 3, 1, 2)  # (T, 3, 2, 2)
-
-
-def _decode(images: torch.Tensor) -> torch.Tensor:
-    """(N, 3, 2, 2) -> (N, 2) viewpoints in degrees."""
-    code = images[:, :2, 0, 0] * 256 + images[:, :2, 0, 1]
-    return code / 65535 * torch.tensor([360.0, 180.0], dtype=images.dtype) - torch.tensor([180.0, 90.0])
 
 
 class _AngleModel:
@@ -65,7 +33,7 @@ class _AngleModel:
 
     def predict_voxels(self, images: torch.Tensor) -> torch.Tensor:
         self.calls += 1
-        views = torch.stack([_decode(images[:, v]) for v in range(images.shape[1])], 1)  # (N, V, 2)
+        views = torch.stack([decode_viewpoints(images[:, v]) for v in range(images.shape[1])], 1)  # (N, V, 2)
         self.seen.append(views)
         d = angular_distance(views[:, 0], ADVERSARIAL.to(views.dtype))
         value = torch.exp(-0.5 * (d / WIDTH) ** 2)
@@ -77,7 +45,7 @@ def _loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def _setup(categories: list[str]):
-    synth, model = _ViewpointSynthesizer(), _AngleModel()
+    synth, model = ViewpointSynthesizer(), _AngleModel()
     requests = [
         SynthesisRequest(
             object_id=f"obj{i}",
@@ -92,7 +60,7 @@ def _setup(categories: list[str]):
         model=model,
         synthesizer=synth,
         requests=requests,
-        transform=_transform,
+        transform=viewpoint_transform,
         loss_fn=_loss,
         device=torch.device("cpu"),
     )
@@ -109,8 +77,8 @@ def test_viewpoint_encoding_round_trips():
     # The fake pair must decode what the fake synthesizer wrote, or the other tests prove nothing.
     vp = torch.tensor([[-180.0, -90.0], [12.5, 33.3], [179.9, 90.0]])
     req = SynthesisRequest("o", "c", np.zeros((0, 2, 2, 4), np.uint8), torch.zeros(0, 2), vp)
-    img = _ViewpointSynthesizer().synthesize([req])[0]
-    assert torch.allclose(_decode(_transform(img)), vp.double(), atol=0.01)
+    img = ViewpointSynthesizer().synthesize([req])[0]
+    assert torch.allclose(decode_viewpoints(viewpoint_transform(img)), vp.double(), atol=0.01)
 
 
 def test_nes_utilities_rank_shaping():
