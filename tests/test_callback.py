@@ -145,7 +145,12 @@ def test_any_selector_runs_through_the_same_callback(tiny_dataset, tmp_path, sel
 
 
 #: The per-object (sharded) default and the relative score, which the callback runs batched on rank 0.
-GUIDED = {"per_object": lambda: None, "relative": lambda: ErrorGuidedSelector(relative=True)}
+GUIDED = {
+    "per_object": lambda: None,
+    "relative": lambda: ErrorGuidedSelector(relative=True),
+    # renders every candidate view and queries the model: 8 bins at K = 90 keep it quick
+    "input": lambda: ErrorGuidedSelector(k=90, score="input"),
+}
 
 
 def _fit(root, tmp_path, epochs, ckpt=None, selector=None):
