@@ -99,7 +99,9 @@ def main() -> None:
     times = []
     for repeat in range(args.repeats):
         start = time.perf_counter()
-        visible.select(predicted, target, [r.category for r in records], generator=torch.Generator().manual_seed(repeat))
+        visible.select(
+            predicted, target, [r.category for r in records], generator=torch.Generator().manual_seed(repeat)
+        )
         times.append(time.perf_counter() - start)
     print(f"score='visible' on the same objects: {args.objects / statistics.median(times):.0f} objects/s")
 
