@@ -114,6 +114,9 @@ _FRESH = {"fraction": 0.2, "max_samples": 34}
 #:   ``"visible_tau3_search"`` giving the new views to the searched objects with the largest error;
 #:   ``"visible_rel_search"`` and ``"visible_rel_tau_search"``: ``"visible_nms_search"`` and ``"visible_tau_search"``
 #:   with scores relative to the category's mean per view (``ErrorGuidedSelector(relative=True)``);
+#: * ``"input_nms"`` and ``"input_tau"``: the input-side score (``ErrorGuidedSelector(score="input")``: the model's
+#:   loss given the object's image from each bin centre alone) with 30-degree suppression, hard top n and
+#:   temperature 1, each object trained on its own selection (no pool);
 #: * ``"random_fresh"``, ``"random_area_fresh"``, ``"visible_tau3_search_fresh"`` and ``"visible_tau10_search_fresh"``:
 #:   ``"random"``, ``"random_area"``, ``"visible_tau3_search"`` and ``"visible_tau10_search"`` giving 20 % of the
 #:   objects new views per selection and keeping only the latest selection's samples (sized for the embedded

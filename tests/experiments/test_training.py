@@ -301,6 +301,12 @@ def test_variants_build_their_selector_and_callback_settings():
     merged = build("visible_nms_search", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
     assert (merged.selector.k, merged.selector.score, merged.selector.min_separation) == (15, "visible", 30.0)
     assert (merged.search_fraction, merged.pool_refresh) == (0.5, True)
+    # The input-side rows query the model through a context and train each object on its own selection.
+    for name, temperature in (("input_nms", None), ("input_tau", 1.0)):
+        row = build(name)
+        selector = row.selector
+        assert (selector.score, selector.min_separation, selector.temperature) == ("input", 30.0, temperature)
+        assert selector.needs_context and row.pool is None and row.fraction == 0.1
     # The fresh variants fix their own budget (20 %, latest selection only) over the config's 10 %.
     for name, mode in (("random_fresh", "angle"), ("random_area_fresh", "area")):
         fresh = build(name)
