@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -10,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["SelectionContext", "ViewSelector", "check_categories"]
+__all__ = ["SelectionContext", "ViewSelector", "check_categories", "view_set_losses"]
 
 
 def check_categories(categories: list[str], batch: int) -> list[str]:
@@ -53,6 +54,45 @@ class SelectionContext:
     transform: Callable[[np.ndarray], Tensor]
     loss_fn: Callable[[Tensor, Tensor], Tensor]
     device: torch.device
+
+
+@torch.no_grad()
+def view_set_losses(sets: Tensor, target: Tensor, context: SelectionContext, batch_size: int | None = None) -> Tensor:
+    """Loss ``(B, P)`` of the model given each object's images from each of its view sets ``(B, P, V, 2)`` (degrees).
+
+    One synthesizer call renders every view of every object (``context.requests``, one per object); the model
+    predicts from ``(N, V, 3, h, w)`` batches of at most ``batch_size`` sets (``None``: all at once), and
+    ``context.loss_fn`` compares each prediction with its object's ``target (B, R, R, R)``. VIAT scores its
+    candidate distributions with it, ``ErrorGuidedSelector(score="input")`` its single-view bins.
+
+    Raises:
+        ValueError: a request count other than ``B``, or a synthesizer that returns another number of objects
+            or of images per object.
+    """
+    batch, pop, views = sets.shape[:3]
+    if len(context.requests) != batch:
+        raise ValueError(
+            f"`context.requests` must hold one SynthesisRequest per object: expected {batch}, got {len(context.requests)}"
+        )
+    requests = [
+        dataclasses.replace(req, target_viewpoints=sets[b].reshape(pop * views, 2).to(torch.float32))
+        for b, req in enumerate(context.requests)
+    ]
+    images = context.synthesizer.synthesize(requests)
+    if len(images) != batch or any(len(img) != pop * views for img in images):
+        raise ValueError(
+            f"The synthesizer returned {[len(img) for img in images]} images for {batch} objects of "
+            f"{pop * views} views each"
+        )
+    inputs = torch.stack([torch.as_tensor(context.transform(np.asarray(img))) for img in images])
+    inputs = inputs.reshape(batch * pop, views, *inputs.shape[2:]).to(context.device)
+    reference = target.to(context.device).repeat_interleave(pop, dim=0)
+    chunk = batch_size or inputs.shape[0]
+    losses = []
+    for start in range(0, inputs.shape[0], chunk):
+        pred = context.model.predict_voxels(inputs[start : start + chunk])
+        losses.append(torch.as_tensor(context.loss_fn(pred, reference[start : start + chunk])).reshape(-1))
+    return torch.cat(losses).reshape(batch, pop).detach().cpu()
 
 
 class ViewSelector(abc.ABC):

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Literal
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import candidate_viewpoints, check_bin_interval, sample_uniform_viewpoints
-from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories, view_set_losses
 from lightning_vtr.selection.diversity import choose_bins
 from lightning_vtr.selection.projection import (
     check_volume_pair,
@@ -230,9 +228,8 @@ class ErrorGuidedSelector(ViewSelector):
     def input_scores(self, target: Tensor, context: SelectionContext | None) -> Tensor:
         """``(B, V_c)`` loss of the model given each object's image from each bin centre as its only view.
 
-        One synthesizer call renders every candidate of every object; the model sees ``(N, 1, 3, h, w)``
-        batches of at most ``model_batch_size``; ``context.loss_fn`` compares each prediction with the
-        object's ground truth.
+        Every bin centre is a one-view set of :func:`~lightning_vtr.selection.base.view_set_losses`: one
+        synthesizer call for all of them, ``(N, 1, 3, h, w)`` model batches of at most ``model_batch_size``.
 
         Raises:
             ValueError: no context (or one without model, synthesizer, transform or loss), a request count
@@ -247,28 +244,12 @@ class ErrorGuidedSelector(ViewSelector):
                 "ErrorGuidedViewAugmentation callback passes one"
             )
         batch, n_views = target.shape[0], self.candidates.shape[0]
-        if len(context.requests) != batch:
-            raise ValueError(
-                f"`context.requests` must hold one SynthesisRequest per object: expected {batch}, "
-                f"got {len(context.requests)}"
-            )
         if batch == 0:
             return target.new_zeros((0, n_views), dtype=torch.float32)
-        requests = [dataclasses.replace(req, target_viewpoints=self.candidates.float()) for req in context.requests]
-        images = context.synthesizer.synthesize(requests)
-        if len(images) != batch or any(len(img) != n_views for img in images):
-            counts = [len(img) for img in images]
-            raise ValueError(
-                f"The synthesizer returned {counts} images for {batch} objects of {n_views} candidate views each"
-            )
-        inputs = torch.cat([torch.as_tensor(context.transform(np.asarray(img))) for img in images])
-        reference = target.to(context.device, torch.float32).repeat_interleave(n_views, dim=0)
-        losses = []
-        for start in range(0, inputs.shape[0], self.model_batch_size):
-            chunk = inputs[start : start + self.model_batch_size, None].to(context.device)
-            pred = context.model.predict_voxels(chunk)
-            losses.append(torch.as_tensor(context.loss_fn(pred, reference[start : start + len(chunk)])).reshape(-1))
-        return torch.cat(losses).reshape(batch, n_views).float().cpu().clamp_min(0.0)
+        # every bin centre is a one-view set: (B, V_c, 1, 2)
+        sets = self.candidates[None, :, None].expand(batch, -1, -1, -1)
+        losses = view_set_losses(sets, target.float(), context, self.model_batch_size)
+        return losses.float().clamp_min(0.0)
 
     def select(
         self,

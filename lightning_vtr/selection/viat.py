@@ -9,16 +9,14 @@ one adversarial viewpoint and the other two input views sit 120 and 240 degrees 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import wrap_yaw
-from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories, view_set_losses
 from lightning_vtr.utils.validation import check_float, check_int
 
 __all__ = ["VIATSelector"]
@@ -305,7 +303,7 @@ class VIATSelector(ViewSelector):
         z = {name: self._mixtures[name].sample(pop, generator) for name in order}
         # Each object is scored at every candidate of its category: (B, P, num_views, 2) view sets.
         sets = torch.stack([self._view_sets(_to_viewpoints(z[c])) for c in categories])
-        losses = self._evaluate(sets, target, context)  # (B, P)
+        losses = view_set_losses(sets, target, context, self.model_batch_size)  # (B, P)
 
         for name in order:
             mix = self._mixtures[name]
@@ -325,24 +323,3 @@ class VIATSelector(ViewSelector):
             mix.optimizer.step()
             with torch.no_grad():
                 mix.log_std.clamp_(*_LOG_STD_RANGE)
-
-    @torch.no_grad()
-    def _evaluate(self, sets: Tensor, target: Tensor, context: SelectionContext) -> Tensor:
-        """Reconstruction loss ``(B, P)`` of every object at each of its candidate view sets ``(B, P, V, 2)``."""
-        batch, pop, views = sets.shape[:3]
-        requests = [
-            dataclasses.replace(req, target_viewpoints=sets[b].reshape(pop * views, 2).to(torch.float32))
-            for b, req in enumerate(context.requests)
-        ]
-        images = context.synthesizer.synthesize(requests)  # one call for every candidate of the step
-        if len(images) != batch:
-            raise ValueError(f"The synthesizer returned {len(images)} image arrays for {batch} requests")
-        inputs = torch.stack([torch.as_tensor(context.transform(np.asarray(img))) for img in images])
-        inputs = inputs.reshape(batch * pop, views, *inputs.shape[2:]).to(context.device)
-        reference = target.to(context.device).repeat_interleave(pop, dim=0)
-        chunk = self.model_batch_size or inputs.shape[0]
-        losses = []
-        for start in range(0, inputs.shape[0], chunk):
-            pred = context.model.predict_voxels(inputs[start : start + chunk])
-            losses.append(torch.as_tensor(context.loss_fn(pred, reference[start : start + chunk])).reshape(-1))
-        return torch.cat(losses).reshape(batch, pop).detach().cpu()
