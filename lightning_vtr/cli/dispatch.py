@@ -5,8 +5,11 @@ Each sub-command is a module of this package with a ``HELP`` line, ``add_argumen
 entry. ``fit`` / ``validate`` / ``test`` go to Lightning's ``LightningCLI``
 (:mod:`lightning_vtr.cli.lightning`); ``predict`` is the package's command (:mod:`lightning_vtr.cli.predict`)
 unless its words use LightningCLI's options (``--config``, ``--ckpt_path``, ``--trainer.*``, ...), then it goes
-to LightningCLI too. Errors a user can fix (a bad path, ``--shard 3/2``) print one line to
-stderr and exit with status 2; argparse's own usage errors exit with 2 as well.
+to LightningCLI too. Errors a user can fix print one line to stderr naming the thing, what was expected and
+what was found, never a traceback: exit status 2 for usage errors (a missing path, ``--shard 3/2``, an output
+folder holding other files; argparse's own usage errors exit with 2 as well), 1 for data errors (a truncated
+checkpoint, a file that is not a picture, a full disk); see :mod:`lightning_vtr.errors` and
+``docs/bad_input.md``.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from collections.abc import Callable, Sequence
 
 from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
+from lightning_vtr.errors import EXPECTED_ERRORS, exit_status, one_line
 
 __all__ = ["COMMANDS", "build_parser", "goes_to_lightning", "main"]
 
@@ -68,15 +72,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lightning-vtr`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     words = list(sys.argv[1:] if argv is None else argv)
     if goes_to_lightning(words):
-        return run_lightning_cli(None if argv is None else words)
-    args = build_parser().parse_args(words)
-    args.command_line = shlex.join(["lightning-vtr", *words])  # shown in reports
+        command, run = words[0], lambda: run_lightning_cli(None if argv is None else words)
+    else:
+        args = build_parser().parse_args(words)
+        args.command_line = shlex.join(["lightning-vtr", *words])  # shown in reports
+        command, run = args.command, lambda: args.run(args)
     try:
-        return int(args.run(args))
-    except (ValueError, FileNotFoundError, RuntimeError) as err:
-        # Errors a user can fix get one line, not a traceback.
-        print(f"lightning-vtr {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        return int(run())
+    except EXPECTED_ERRORS as err:
+        # Errors a user can fix get one line, not a traceback: 2 for the command line, 1 for the data.
+        print(f"lightning-vtr {command}: error: {one_line(err)}", file=sys.stderr)
+        return exit_status(err)
 
 
 if __name__ == "__main__":

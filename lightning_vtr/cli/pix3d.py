@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from lightning_vtr.cli.arguments import positive_int
+from lightning_vtr.errors import UsageError
 
 __all__ = [
     "FOLDER_HELP",
@@ -113,6 +114,16 @@ def _device(name: str) -> str:
     return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
 
 
+def _check_checkpoints_and_out(args: argparse.Namespace) -> None:
+    """Every ``--checkpoint`` a readable Lightning checkpoint, ``--out`` new, empty or an earlier table's."""
+    from lightning_vtr.cli.arguments import check_output_folder
+    from lightning_vtr.cli.predict import check_checkpoint
+
+    for _, path in args.checkpoint:
+        check_checkpoint(path, "--checkpoint")
+    check_output_folder(args.out, marker="table.md")
+
+
 def _load(path: Path, model_class: str | None) -> tuple[Any, Any]:
     """The model and the evaluation transform it was validated with."""
     from lightning_vtr.cli.predict import load_model, make_datamodule
@@ -165,12 +176,16 @@ def run(args: argparse.Namespace) -> int:
 
     # 1. check inputs and read the photographs
     if not 0.0 <= args.margin <= 2.0:
-        raise ValueError(f"`--margin` must be in [0, 2], got {args.margin}")
+        raise UsageError(f"`--margin` must be in [0, 2], got {args.margin}")
     if args.frame_check < 0:
-        raise ValueError(f"`--frame-check` must be >= 0, got {args.frame_check}")
-    for _, path in args.checkpoint:
-        if not path.is_file():
-            raise FileNotFoundError(f"`--checkpoint` must be a checkpoint file, got {str(path)!r} (no such file)")
+        raise UsageError(f"`--frame-check` must be >= 0, got {args.frame_check}")
+    root = Path(args.root).expanduser()
+    if not root.is_dir():
+        found = "a file" if root.exists() else "no such folder"
+        raise FileNotFoundError(
+            f"`--root` must be the Pix3D folder (pix3d.json, img/, ...), got {str(args.root)!r} ({found})"
+        )
+    _check_checkpoints_and_out(args)
     records = read_pix3d(
         args.root,
         categories=args.category,
@@ -223,9 +238,12 @@ def run(args: argparse.Namespace) -> int:
 def run_folder(args: argparse.Namespace) -> int:
     from lightning_vtr.data.folder_eval import FolderTestSet, evaluate_dataset
 
-    for _, path in args.checkpoint:
-        if not path.is_file():
-            raise FileNotFoundError(f"`--checkpoint` must be a checkpoint file, got {str(path)!r} (no such file)")
+    for option in ("--images", "--voxels"):
+        folder = Path(getattr(args, option[2:])).expanduser()
+        if not folder.is_dir():
+            found = "a file" if folder.exists() else "no such folder"
+            raise FileNotFoundError(f"`{option}` must be a folder, got {str(folder)!r} ({found})")
+    _check_checkpoints_and_out(args)
     results, sizes = {}, set()
     for name, path in args.checkpoint:
         model, transform = _load(path, args.model)

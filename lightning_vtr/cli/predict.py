@@ -27,7 +27,8 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from lightning_vtr.cli.arguments import comma_separated, positive_int
+from lightning_vtr.cli.arguments import check_output_folder, comma_separated, positive_int
+from lightning_vtr.errors import DataError, UsageError
 
 if TYPE_CHECKING:
     import lightning as L
@@ -40,6 +41,7 @@ __all__ = [
     "HELP",
     "IMAGE_SUFFIXES",
     "add_arguments",
+    "check_checkpoint",
     "load_model",
     "make_datamodule",
     "predict_dataset",
@@ -137,10 +139,51 @@ def _import_class(path: str) -> type:
     raise ValueError(f"`--model` must be pix2vox, lrgt or an importable class path (module.Class), got {path!r}")
 
 
-def _checkpoint_file(ckpt: str | Path) -> Path:
+def _checkpoint_file(ckpt: str | Path, option: str = "--ckpt") -> Path:
     path = Path(ckpt).expanduser()
     if not path.is_file():
-        raise FileNotFoundError(f"`--ckpt` must be a checkpoint file, got {str(ckpt)!r} (no such file)")
+        found = "a folder" if path.is_dir() else "no such file"
+        raise FileNotFoundError(f"`{option}` must be a checkpoint file, got {str(ckpt)!r} ({found})")
+    return path
+
+
+#: The keys every Lightning checkpoint holds.
+_LIGHTNING_KEYS = ("state_dict", "pytorch-lightning_version")
+
+
+def check_checkpoint(ckpt: str | Path, option: str = "--ckpt") -> Path:
+    """``ckpt`` as a path if it is a readable Lightning checkpoint file.
+
+    Raises:
+        FileNotFoundError: no file there (a usage error).
+        DataError: an empty, truncated or non-torch file, or a ``torch.save`` file that is not a Lightning
+            checkpoint (no ``state_dict`` / ``pytorch-lightning_version``); the message names the file.
+    """
+    import pickle
+
+    import torch
+
+    path = _checkpoint_file(ckpt, option)
+    size = path.stat().st_size
+    expected = f"`{option}` must be a Lightning checkpoint (a file `Trainer.fit` saved), got {str(ckpt)!r}"
+    if size == 0:
+        raise DataError(f"{expected}: an empty file (0 bytes)")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        if "weights_only" in str(err) or "Unsupported global" in str(err):
+            return path  # a full pickle (objects in the hyperparameters): Lightning loads it, trust it
+        raise DataError(f"{expected}: {size} bytes torch cannot read (a truncated copy, or not a torch file)") from None
+    except (RuntimeError, OSError, EOFError, ValueError, AttributeError):
+        raise DataError(f"{expected}: {size} bytes torch cannot read (a truncated copy, or not a torch file)") from None
+    if not isinstance(checkpoint, dict) or any(key not in checkpoint for key in _LIGHTNING_KEYS):
+        what = (
+            f"a plain torch.save file holding a dict of {len(checkpoint)} keys without "
+            + " / ".join(repr(k) for k in _LIGHTNING_KEYS if k not in checkpoint)
+            if isinstance(checkpoint, dict)
+            else f"a plain torch.save file holding a {type(checkpoint).__name__}"
+        )
+        raise DataError(f"{expected}: {what}; save models with Trainer.fit / trainer.save_checkpoint")
     return path
 
 
@@ -157,7 +200,7 @@ def load_model(ckpt: str | Path, model: str | None = None, map_location: Any = "
     """
     from lightning_vtr.experiments.training import MODELS
 
-    path = _checkpoint_file(ckpt)
+    path = check_checkpoint(ckpt)
     hparams, _ = _checkpoint_hparams(path)
     if model is not None:
         candidates = [MODELS[model] if model in MODELS else _import_class(model)]
@@ -170,10 +213,10 @@ def load_model(ckpt: str | Path, model: str | None = None, map_location: Any = "
         try:
             loaded = cls.load_from_checkpoint(path, map_location=map_location)
         except (RuntimeError, TypeError, KeyError, ValueError) as err:
-            errors.append(f"{cls.__name__}: {str(err).splitlines()[0][:200]}")
+            errors.append(f"{cls.__name__}: {(str(err).splitlines() or [type(err).__name__])[0][:300]}")
             continue
         return loaded.eval()
-    raise ValueError(f"no model class loads the checkpoint {str(path)!r}: " + "; ".join(errors))
+    raise DataError(f"no model class loads the checkpoint {str(path)!r}: " + "; ".join(errors))
 
 
 def make_datamodule(ckpt: str | Path, model: Any, root: str | Path | None = None) -> VTRDataModule:
@@ -237,6 +280,33 @@ def _folder_pictures(folder: Path, given: str | Path) -> tuple[dict[str, Path], 
     return masks, views
 
 
+def _open_picture(path: Path) -> Any:
+    """``PIL.Image.open(path)``, or :class:`~lightning_vtr.errors.DataError` naming the file when it is not a
+    picture PIL can read (empty, truncated, another format under a picture's suffix)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        image = Image.open(path)
+        image.load()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        size = path.stat().st_size if path.is_file() else 0
+        if size == 0:
+            found = "an empty file"
+        elif "truncated" in str(err):
+            found = f"a truncated picture ({size} bytes)"
+        else:
+            found = f"{size} bytes PIL cannot read as a picture (another kind of file)"
+        raise DataError(f"`--images`: {str(path)!r} must be a PNG, JPEG, WebP or BMP picture, got {found}") from None
+    return image
+
+
+def _check_pictures(folder: Path, given: str | Path) -> None:
+    """Open every picture and mask of an image folder once (before the model loads or anything is written)."""
+    masks, views = _folder_pictures(folder, given)
+    for path in [*views, *masks.values()]:
+        _open_picture(path).close()
+
+
 def read_view_folder(
     directory: str | Path, *, background_key: Sequence[int] | None = None, key_tolerance: int = 12
 ) -> tuple[list[np.ndarray], list[str], np.ndarray | None]:
@@ -251,7 +321,6 @@ def read_view_folder(
         ValueError: a mask of another size than its picture, or more than one binvox file.
     """
     import numpy as np
-    from PIL import Image
 
     from lightning_vtr.data.binvox import read_binvox
 
@@ -259,14 +328,14 @@ def read_view_folder(
     masks, views = _folder_pictures(folder, directory)
     pictures = []
     for path in views:
-        with Image.open(path) as image:
+        with _open_picture(path) as image:
             has_alpha = image.mode in ("RGBA", "LA", "PA") or (image.mode == "P" and "transparency" in image.info)
             rgba = np.asarray(image.convert("RGBA")).copy()
         if path.stem in masks:
-            with Image.open(masks[path.stem]) as mask_image:
+            with _open_picture(masks[path.stem]) as mask_image:
                 mask = np.asarray(mask_image.convert("L"))
             if mask.shape != rgba.shape[:2]:
-                raise ValueError(
+                raise DataError(
                     f"the mask {masks[path.stem].name!r} must have the size of {path.name!r} "
                     f"({rgba.shape[1]}x{rgba.shape[0]}), got {mask.shape[1]}x{mask.shape[0]}"
                 )
@@ -276,9 +345,7 @@ def read_view_folder(
         pictures.append(_square(rgba))
     binvox = sorted(folder.glob("*.binvox"))
     if len(binvox) > 1:
-        raise ValueError(
-            f"an image folder may hold one ground-truth .binvox file, got {len(binvox)} in {str(folder)!r}"
-        )
+        raise DataError(f"an image folder may hold one ground-truth .binvox file, got {len(binvox)} in {str(folder)!r}")
     truth = read_binvox(binvox[0]) if binvox else None
     return pictures, [p.name for p in views], truth
 
@@ -319,7 +386,7 @@ def predict_folders(
         images = torch.stack([transform(p) for p in pictures])
         predicted = _predict(model, images[None], dev)[0]
         if truth is not None and truth.shape != tuple(predicted.shape):
-            raise ValueError(
+            raise DataError(
                 f"the ground truth in {str(folder)!r} must be a {tuple(predicted.shape)} grid like the prediction, "
                 f"got {truth.shape}"
             )
@@ -444,12 +511,21 @@ def run(args: argparse.Namespace) -> int:
     # 1. check inputs
     threshold = check_float("--threshold", args.threshold, minimum=0.0, maximum=1.0, min_open=True, max_open=True)
     if not 0 <= args.key_tolerance <= 255:
-        raise ValueError(f"`--key-tolerance` must be in [0, 255], got {args.key_tolerance}")
-    if args.data is not None and not Path(args.data).expanduser().is_dir():
-        raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} (not a folder)")
+        raise UsageError(f"`--key-tolerance` must be in [0, 255], got {args.key_tolerance}")
+    if args.data is not None:
+        from lightning_vtr.data.format import load_metadata
+
+        if not Path(args.data).expanduser().is_dir():
+            found = "a file" if Path(args.data).expanduser().exists() else "no such folder"
+            raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} ({found})")
+        load_metadata(Path(args.data).expanduser())  # a folder of something else: DatasetFormatError
     _checkpoint_file(args.ckpt)
-    for folder in args.images or ():  # every folder, before the model loads or anything is written
+    for folder in args.images or ():  # every folder, then every picture, before the model loads or anything is written
         _folder_pictures(Path(folder).expanduser(), folder)
+    check_checkpoint(args.ckpt)
+    for folder in args.images or ():
+        _check_pictures(Path(folder).expanduser(), folder)
+    check_output_folder(args.out)
     # 2. load the model and its image transform
     model = load_model(args.ckpt, args.model)
     dm = make_datamodule(args.ckpt, model, args.data)

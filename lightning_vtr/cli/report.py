@@ -162,9 +162,34 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
     )
 
 
+def check_inputs(args: argparse.Namespace) -> None:
+    """Check ``--data``, ``--out`` and ``--fraction`` before anything starts (Lightning, the embedded build).
+
+    Raises:
+        DatasetNotFoundError / FileNotFoundError: ``--data`` is no dataset folder (exit status 2).
+        DatasetFormatError: its ``metadata.json`` is invalid (exit status 1).
+        UsageError: ``--fraction`` out of (0, 1], ``--out`` a file or a folder of other files.
+    """
+    from pathlib import Path
+
+    from lightning_vtr.cli.arguments import check_output_folder
+    from lightning_vtr.data.format import load_metadata
+    from lightning_vtr.errors import UsageError
+
+    if not 0.0 < args.fraction <= 1.0:
+        raise UsageError(f"`--fraction` must be in (0, 1], got {args.fraction!r}")
+    if args.data is not None:
+        data = Path(args.data).expanduser()
+        if data.exists() and not data.is_dir():
+            raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} (a file)")
+        load_metadata(data)
+    check_output_folder(Path(args.out), marker="seed_*")
+
+
 def run(args: argparse.Namespace) -> int:
     from lightning_vtr.experiments.report import run_report
 
+    check_inputs(args)
     result = run_report(report_config(args, command=args.command_line))
     print(result["markdown"])
     print("Wrote " + ", ".join(str(p) for p in result["paths"].values()))

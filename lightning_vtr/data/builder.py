@@ -70,7 +70,7 @@ from lightning_vtr.data.format import (
 from lightning_vtr.data.mesh import MESH_EXTENSIONS
 from lightning_vtr.geometry import sample_uniform_viewpoints, wrap_yaw
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write, remove_stale_temporaries
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
@@ -462,6 +462,22 @@ def _content_config(source, categories, objects_per_category, opts, split, layou
     }
 
 
+def _check_output_dir(out: Path) -> None:
+    """Refuse an output that is a file, or a folder of other files (no ``build_config.json``: not a build)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(
+            f"the output folder must be a folder (new, empty or an earlier build), got {str(out)!r} (a file)"
+        )
+    if out.is_dir() and not (out / "build_config.json").is_file():
+        others = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+        if others:
+            shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
+            raise ValueError(
+                f"the output folder must be new, empty or an earlier build (with build_config.json), got "
+                f"{str(out)!r} holding {len(others)} other entries ({shown}); choose another folder"
+            )
+
+
 def _write_or_check_config(out: Path, config: dict[str, Any]) -> None:
     path = out / "build_config.json"
     if path.is_file():
@@ -544,8 +560,10 @@ def build_dataset(
         seed=int(seed),
         **pix3d,  # only in a Pix3D build: a VTR build's config stays what it was before protocols existed
     )
+    _check_output_dir(out)
     tasks = _discover(source, source_layout, objects_per_category, categories, up_axis)
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
     config = _content_config(source, categories, objects_per_category, opts, split, source_layout, up_axis)
     _write_or_check_config(out, config)
     index, count = shard

@@ -436,6 +436,11 @@ class VTRDataModule(L.LightningDataModule):
         """
         self.setup()
         directory = self.generated_dir
+        if not getattr(self, "_stale_removed", False):  # a killed run's half-written files, once per run
+            from lightning_vtr.utils.io import remove_stale_temporaries
+
+            remove_stale_temporaries(directory)
+            self._stale_removed = True
         new = []
         for sample in samples:
             if (sample.category, sample.object_id) not in self._by_key:

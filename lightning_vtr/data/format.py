@@ -26,6 +26,7 @@ __all__ = [
     "UP_AXES",
     "VIEW_SETS",
     "DatasetFormatError",
+    "DatasetNotFoundError",
     "ObjectRecord",
     "atomic_write_json",
     "dataset_summary",
@@ -64,6 +65,15 @@ SHAPENET_SYNSETS: dict[str, str] = {
 
 class DatasetFormatError(ValueError):
     """A dataset directory is missing, incomplete or of an unsupported version (the message names the file)."""
+
+    #: ``lightning-vtr``'s exit status for it: a data error (see :mod:`lightning_vtr.errors`).
+    exit_status = 1
+
+
+class DatasetNotFoundError(DatasetFormatError):
+    """The folder holds no ``metadata.json``: not a (finished) dataset, most likely the wrong path."""
+
+    exit_status = 2  # a usage error
 
 
 @dataclass
@@ -172,7 +182,7 @@ def load_metadata(root: str | Path) -> dict:
             if (Path(root) / "objects").is_dir()
             else "build one with `lightning-vtr build-dataset ROOT`"
         )
-        raise DatasetFormatError(f"{path} does not exist: {root} is not a complete ShapeNet-VTR dataset; {hint}.")
+        raise DatasetNotFoundError(f"{path} does not exist: {root} is not a complete ShapeNet-VTR dataset; {hint}.")
     meta = _read_json(path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__

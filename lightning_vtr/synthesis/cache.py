@@ -71,7 +71,10 @@ class SynthesisCache:
     """
 
     def __init__(self, root: str | os.PathLike) -> None:
+        from lightning_vtr.utils.io import remove_stale_temporaries
+
         self.root = Path(root)
+        remove_stale_temporaries(self.root)  # what a killed run's writes left (files untouched for a minute)
 
     def config_dir(self, config_key: str) -> Path:
         """The directory holding every image made under ``config_key``.

@@ -9,7 +9,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_open", "atomic_write"]
+__all__ = ["STALE_SECONDS", "atomic_open", "atomic_write", "remove_stale_temporaries"]
+
+#: A temporary file of :func:`atomic_open` unchanged for this long belongs to a killed write (a live write
+#: keeps touching its file); :func:`remove_stale_temporaries` removes it.
+STALE_SECONDS = 60.0
 
 
 @contextlib.contextmanager
@@ -59,3 +63,27 @@ def atomic_write(path: str | Path, data: bytes | str, *, fsync: bool = False) ->
     """Write ``data`` (bytes, or text as UTF-8) to ``path`` atomically (see :func:`atomic_open`)."""
     with atomic_open(path, "wb", fsync=fsync) as f:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
+
+
+def remove_stale_temporaries(directory: str | Path, *, older_than: float = STALE_SECONDS) -> list[Path]:
+    """Remove the temporary files killed :func:`atomic_open` writes left under ``directory`` (recursively).
+
+    Only hidden ``.<name>.<random>.tmp`` files unchanged for ``older_than`` seconds are removed, so a
+    concurrent writer's (another shard's, another rank's) file in progress is kept. Returns what was removed;
+    a file another process removes first is skipped.
+    """
+    import time
+
+    root = Path(directory)
+    if not root.is_dir():
+        return []
+    limit = time.time() - older_than
+    removed = []
+    for path in root.rglob(".*.tmp"):
+        try:
+            if path.is_file() and path.stat().st_mtime < limit:
+                path.unlink()
+                removed.append(path)
+        except FileNotFoundError:
+            continue
+    return removed

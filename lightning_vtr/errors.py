@@ -1,0 +1,77 @@
+"""The two kinds of error a user can fix, and how ``lightning-vtr`` reports every error it expects.
+
+* :class:`UsageError` (exit status 2): the command line is wrong: a path that does not exist or is of the
+  wrong kind, a number out of range, an output folder that holds other files.
+* :class:`DataError` (exit status 1): the command line is right but a file it names is not what it must be:
+  a truncated checkpoint, a picture PIL cannot read, a checkpoint of another model class.
+
+Both are ``ValueError`` s, so code that catches ``ValueError`` keeps working. :func:`exit_status` and
+:func:`one_line` map any expected exception (these, ``FileNotFoundError``, ``PermissionError``, a full disk,
+``DatasetFormatError``, ...) to the status and the one-line message ``lightning-vtr`` prints.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+
+__all__ = ["EXIT_DATA", "EXIT_USAGE", "EXPECTED_ERRORS", "DataError", "UsageError", "exit_status", "one_line"]
+
+#: Exit status of a usage error (argparse's own).
+EXIT_USAGE = 2
+#: Exit status of a data error: an input file that is not what it must be, or a write the system refused.
+EXIT_DATA = 1
+
+
+class UsageError(ValueError):
+    """The command line is wrong (exit status 2)."""
+
+
+class DataError(ValueError):
+    """A file the command line names is not what it must be (exit status 1)."""
+
+
+#: The exceptions ``lightning-vtr`` answers with one line instead of a traceback.
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, RuntimeError, EOFError)
+
+
+def _image_error() -> tuple[type[BaseException], ...]:
+    try:
+        from PIL import UnidentifiedImageError
+    except ImportError:  # pragma: no cover
+        return ()
+    return (UnidentifiedImageError,)
+
+
+def exit_status(err: BaseException) -> int:
+    """:data:`EXIT_USAGE` for errors of the command line, :data:`EXIT_DATA` for errors of the data or the system."""
+    own = getattr(type(err), "exit_status", None)  # a class that says, e.g. data.format.DatasetFormatError
+    if isinstance(own, int):
+        return own
+    if isinstance(err, UsageError):
+        return EXIT_USAGE
+    if isinstance(err, (DataError, RuntimeError, EOFError, *_image_error())):
+        return EXIT_DATA
+    if isinstance(err, (FileNotFoundError, NotADirectoryError, IsADirectoryError)):
+        return EXIT_USAGE
+    if isinstance(err, OSError):  # permission, full disk, I/O error: the data or the system
+        return EXIT_DATA
+    return EXIT_USAGE  # a plain ValueError: an argument check
+
+
+def one_line(err: BaseException) -> str:
+    """The error as one line: an ``OSError`` from the system names the file, what was expected and what
+    was found; any other message has its lines joined."""
+    if isinstance(err, OSError) and err.errno is not None and err.filename is not None and err.strerror:
+        where = repr(os.fsdecode(err.filename))
+        if err.errno == errno.ENOSPC:
+            return f"cannot write {where}: expected free space on its disk, found the disk full (free space, re-run)"
+        if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            return f"cannot write {where}: expected a location you may write to, found {err.strerror.lower()}"
+        return f"{where}: {err.strerror}"
+    if isinstance(err, OSError) and err.errno == errno.ENOSPC:
+        return "cannot write the output: expected free space on its disk, found the disk full (free space, re-run)"
+    text = " ".join(line.strip() for line in str(err).splitlines() if line.strip())
+    if isinstance(err, KeyError) or not text:
+        text = f"{type(err).__name__}: {text or 'no message'}"
+    return text
