@@ -90,7 +90,82 @@ def _test_loaders(datamodule: Any) -> Any:
     return datamodule.test_dataloader()
 
 
+def _option_values(words: Sequence[str], names: tuple[str, ...]) -> list[str]:
+    """The values of the options ``names`` in ``words`` (``--name VALUE`` and ``--name=VALUE``)."""
+    values = []
+    for i, word in enumerate(words):
+        name, sep, value = word.partition("=")
+        if name in names:
+            if sep:
+                values.append(value)
+            elif i + 1 < len(words):
+                values.append(words[i + 1])
+    return values
+
+
+def check_config(path: str, option: str = "--config") -> None:
+    """A config of ``lightning-vtr fit|validate|test|predict``: an existing, non-empty YAML file of settings.
+
+    Raises:
+        FileNotFoundError: no file there (a usage error).
+        DataError: an empty file, not UTF-8 text, not YAML, or YAML that is not a mapping of settings.
+    """
+    from pathlib import Path
+
+    import yaml
+
+    from lightning_vtr.errors import DataError
+
+    file = Path(path).expanduser()
+    if not file.is_file():
+        found = "a folder" if file.is_dir() else "no such file"
+        raise FileNotFoundError(f"`{option}` must be a YAML config file, got {path!r} ({found})")
+    expected = f"`{option}` must be a YAML config of LightningCLI settings (trainer:, model:, data:), got {path!r}"
+    data = file.read_bytes()
+    if not data.strip():
+        raise DataError(f"{expected}: an empty file ({len(data)} bytes)")
+    try:
+        settings = yaml.safe_load(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise DataError(f"{expected}: {len(data)} bytes that are not UTF-8 text (a binary file)") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or "not valid YAML"
+        raise DataError(f"{expected}: invalid YAML{where} ({problem}; truncated?)") from None
+    if not isinstance(settings, dict):
+        raise DataError(f"{expected}: YAML holding a {type(settings).__name__}, not a mapping of settings")
+
+
 def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
-    """Run :class:`VTRLightningCLI` on ``argv`` (``None``: ``sys.argv[1:]``); returns the exit status 0."""
-    VTRLightningCLI(args=None if argv is None else list(argv))
+    """Run :class:`VTRLightningCLI` on ``argv`` (``None``: ``sys.argv[1:]``); returns the exit status 0.
+
+    The configs and ``--ckpt_path`` are checked first (:func:`check_config`,
+    :func:`lightning_vtr.cli.predict.check_checkpoint`), and jsonargparse's errors are raised as
+    :class:`~lightning_vtr.errors.UsageError` (one line from ``lightning-vtr``) instead of printing the usage.
+    """
+    import argparse
+    import sys
+
+    from lightning_vtr.cli.predict import check_checkpoint
+    from lightning_vtr.errors import UsageError
+
+    words = list(sys.argv[1:] if argv is None else argv)
+    if not any(word in ("-h", "--help") for word in words):
+        for path in _option_values(words, ("--config", "-c")):
+            check_config(path)
+        for path in _option_values(words, ("--ckpt_path",)):
+            if path not in ("best", "last", "hpc", "registry", "null", "None"):
+                check_checkpoint(path, "--ckpt_path")
+        for root in _option_values(words, ("--data.root",)):
+            if root not in ("null", "None", ""):  # before the Trainer prints its banner
+                from pathlib import Path
+
+                from lightning_vtr.data.format import load_metadata
+
+                load_metadata(Path(root).expanduser())
+    try:
+        VTRLightningCLI(args=None if argv is None else list(argv), parser_kwargs={"exit_on_error": False})
+    except argparse.ArgumentError as err:
+        raise UsageError(str(err)) from None
     return 0
