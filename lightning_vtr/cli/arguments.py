@@ -84,7 +84,7 @@ def check_output_folder(out: Path, option: str = "--out", marker: str = "predict
             shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
             raise UsageError(
                 f"`{option}` must be a new or empty folder or an earlier output (with {marker}), got {str(out)!r} "
-                f"holding {len(others)} other entries ({shown}); choose another folder"
+                f"holding {len(others)} other {'entry' if len(others) == 1 else 'entries'} ({shown}); choose another folder"
             )
     missing = [p for p in (out, *out.parents) if not p.exists()]
     out.mkdir(parents=True, exist_ok=True)

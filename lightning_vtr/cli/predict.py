@@ -171,10 +171,10 @@ def check_checkpoint(ckpt: str | Path, option: str = "--ckpt") -> Path:
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
-        if "weights_only" in str(err) or "Unsupported global" in str(err):
+        if "Unsupported global" in str(err):
             return path  # a full pickle (objects in the hyperparameters): Lightning loads it, trust it
         raise DataError(f"{expected}: {size} bytes torch cannot read (a truncated copy, or not a torch file)") from None
-    except (RuntimeError, OSError, EOFError, ValueError, AttributeError):
+    except (RuntimeError, OSError, EOFError, ValueError, AttributeError, KeyError, IndexError, TypeError):
         raise DataError(f"{expected}: {size} bytes torch cannot read (a truncated copy, or not a torch file)") from None
     if not isinstance(checkpoint, dict) or any(key not in checkpoint for key in _LIGHTNING_KEYS):
         what = (
@@ -213,7 +213,7 @@ def load_model(ckpt: str | Path, model: str | None = None, map_location: Any = "
         try:
             loaded = cls.load_from_checkpoint(path, map_location=map_location)
         except (RuntimeError, TypeError, KeyError, ValueError) as err:
-            errors.append(f"{cls.__name__}: {(str(err).splitlines() or [type(err).__name__])[0][:300]}")
+            errors.append(f"{cls.__name__}: {(str(err).splitlines() or [type(err).__name__])[0][:600]}")
             continue
         return loaded.eval()
     raise DataError(f"no model class loads the checkpoint {str(path)!r}: " + "; ".join(errors))

@@ -474,7 +474,7 @@ def _check_output_dir(out: Path) -> None:
             shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
             raise ValueError(
                 f"the output folder must be new, empty or an earlier build (with build_config.json), got "
-                f"{str(out)!r} holding {len(others)} other entries ({shown}); choose another folder"
+                f"{str(out)!r} holding {len(others)} other {'entry' if len(others) == 1 else 'entries'} ({shown}); choose another folder"
             )
 
 

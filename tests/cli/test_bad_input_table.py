@@ -1,0 +1,411 @@
+"""Every row of ``docs/bad_input.md``: a bad input to a ``lightning-vtr`` sub-command, run through
+``lightning_vtr.cli.main`` as a user would, answers with its one line and exit status (2: the command line,
+1: the data or the system), prints no traceback and leaves nothing behind that looks complete.
+
+The table in the docs is generated from :data:`ROWS` (``python tests/cli/test_bad_input_table.py`` prints it)
+and :func:`test_the_docs_table_is_the_tested_one` keeps the two the same.
+"""
+
+from __future__ import annotations
+
+import errno
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@dataclass
+class Row:
+    """One bad input: ``argv`` and ``message`` use ``{tmp}`` for the test's folder (``DIR`` in the docs)."""
+
+    command: str
+    bad_input: str
+    argv: list[str]
+    message: str  # the whole line after "lightning-vtr <command>: error: " (argparse: the text after "error: ")
+    code: int
+    setup: str = ""  # a name in SETUPS
+    argparse: bool = False  # argparse's own error: its usage line, then "error: ..."
+    absent: list[str] = field(default_factory=list)  # paths under {tmp} that must not exist afterwards
+    note: str = ""
+
+
+_TRUNC = "{tmp}/trunc.ckpt"
+_LIGHTNING = "must be a Lightning checkpoint (a file `Trainer.fit` saved), got"
+_NO_METADATA = "{tmp}/%s/metadata.json does not exist: {tmp}/%s is not a complete ShapeNet-VTR dataset; build one with `lightning-vtr build-dataset ROOT`."
+_OTHER = "must be a new or empty folder or an earlier output (with %s), got '{tmp}/%s' holding 1 other entry (notes.txt); choose another folder"
+_CONFIG = "`--config` must be a YAML config of LightningCLI settings (trainer:, model:, data:), got '{tmp}/%s'"
+_NOT_A_PICTURE = "`--images`: '{tmp}/views/a.png' must be a PNG, JPEG, WebP or BMP picture, got "
+_PERMISSION = "expected a location you may write to, found permission denied"
+_FULL = "expected free space on its disk, found the disk full (free space, re-run)"
+_IMAGES = ["--images", "{tmp}/views"]
+_PREDICT = ["predict", "--ckpt", "{tmp}/good.ckpt", *_IMAGES, "--out", "{tmp}/out"]
+_PIX3D = ["pix3d", "--root", "{tmp}/pix3d", "--checkpoint", "{tmp}/good.ckpt", "--out", "{tmp}/out"]
+_FOLDER = ["evaluate-folder", "--images", "{tmp}/views", "--voxels", "{tmp}/views", "--checkpoint", "{tmp}/good.ckpt"]
+_FIT = ["fit", "--config"]
+
+ROWS: list[Row] = [
+    # ------------------------------------------------------------------ build-dataset
+    Row("build-dataset", "OUTPUT holds other files", ["build-dataset", "{tmp}/other", "--no-progress"],
+        "the output folder must be new, empty or an earlier build (with build_config.json), got '{tmp}/other' "
+        "holding 1 other entry (notes.txt); choose another folder", 2, "other", absent=["other/build_config.json"]),
+    Row("build-dataset", "OUTPUT is a file", ["build-dataset", "{tmp}/notes.txt"],
+        "the output folder must be a folder (new, empty or an earlier build), got '{tmp}/notes.txt' (a file)", 2),
+    Row("build-dataset", "OUTPUT read-only (a refused write)", ["build-dataset", "{tmp}/new", "--no-progress"],
+        f"cannot write '{{tmp}}/new/build_config.json': {_PERMISSION}", 1, "refuse_build",
+        absent=["new/build_config.json", "new/metadata.json"]),
+    Row("build-dataset", "disk full (a failing write)", ["build-dataset", "{tmp}/new", "--no-progress"],
+        f"cannot write '{{tmp}}/new/build_config.json': {_FULL}", 1, "full_build",
+        absent=["new/build_config.json", "new/metadata.json"]),
+    Row("build-dataset", "`--source` missing", ["build-dataset", "{tmp}/new", "--source", "{tmp}/nowhere"],
+        "`source` must be 'procedural' or an existing directory, got '{tmp}/nowhere'", 2),
+    Row("build-dataset", "`--objects-per-category 0`", ["build-dataset", "{tmp}/new", "--objects-per-category", "0"],
+        "argument --objects-per-category: expected a positive integer, got '0'", 2, argparse=True),
+    Row("build-dataset", "`--shard 3/2`", ["build-dataset", "{tmp}/new", "--shard", "3/2"],
+        "argument --shard: shard index must satisfy 0 <= i < n, got 3/2", 2, argparse=True),
+    Row("build-dataset", "`--pitch-range 50,10`", ["build-dataset", "{tmp}/new", "--pitch-range", "50,10"],
+        "argument --pitch-range: expected -90 <= low <= high <= 90, got '50,10'", 2, argparse=True),
+    # ------------------------------------------------------------------ dataset-info
+    Row("dataset-info", "ROOT missing", ["dataset-info", "{tmp}/nowhere"], _NO_METADATA % ("nowhere", "nowhere"), 2),
+    Row("dataset-info", "ROOT a folder of other files", ["dataset-info", "{tmp}/other"],
+        _NO_METADATA % ("other", "other"), 2, "other"),
+    Row("dataset-info", "`metadata.json` empty", ["dataset-info", "{tmp}/data", "--verify"],
+        "{tmp}/data/metadata.json is not valid JSON: Expecting value: line 1 column 1 (char 0)", 1, "empty_meta"),
+    Row("dataset-info", "`metadata.json` truncated", ["dataset-info", "{tmp}/data"],
+        "{tmp}/data/metadata.json is not valid JSON: Unterminated string starting at: line 1 column 12 (char 11)",
+        1, "truncated_meta"),
+    Row("dataset-info", "`metadata.json` of another format", ["dataset-info", "{tmp}/data"],
+        "{tmp}/data/metadata.json: format is 'pix2vox', expected 'lightning_vtr.shapenet_vtr'", 1, "other_meta"),
+    Row("dataset-info", "`--workers 0`", ["dataset-info", "{tmp}/data", "--workers", "0"],
+        "argument --workers: expected a positive integer, got '0'", 2, argparse=True),
+    # ------------------------------------------------------------------ predict
+    Row("predict", "`--ckpt` missing", ["predict", "--ckpt", "{tmp}/none.ckpt", *_IMAGES, "--out", "{tmp}/out"],
+        "`--ckpt` must be a checkpoint file, got '{tmp}/none.ckpt' (no such file)", 2, "views", absent=["out"]),
+    Row("predict", "`--ckpt` a folder", ["predict", "--ckpt", "{tmp}/views", *_IMAGES, "--out", "{tmp}/out"],
+        "`--ckpt` must be a checkpoint file, got '{tmp}/views' (a folder)", 2, "views", absent=["out"]),
+    Row("predict", "`--ckpt` empty", ["predict", "--ckpt", "{tmp}/empty.ckpt", *_IMAGES, "--out", "{tmp}/out"],
+        f"`--ckpt` {_LIGHTNING} '{{tmp}}/empty.ckpt': an empty file (0 bytes)", 1, "views", absent=["out"]),
+    Row("predict", "`--ckpt` truncated (first 5,000 bytes)", ["predict", "--ckpt", _TRUNC, *_IMAGES, "--out", "{tmp}/out"],
+        f"`--ckpt` {_LIGHTNING} '{_TRUNC}': 5000 bytes torch cannot read (a truncated copy, or not a torch file)",
+        1, "views", absent=["out"]),
+    Row("predict", "`--ckpt` a text file", ["predict", "--ckpt", "{tmp}/notes.txt", *_IMAGES, "--out", "{tmp}/out"],
+        f"`--ckpt` {_LIGHTNING} '{{tmp}}/notes.txt': 13 bytes torch cannot read (a truncated copy, or not a torch "
+        "file)", 1, "views", absent=["out"]),
+    Row("predict", "`--ckpt` a plain `torch.save` file", ["predict", "--ckpt", "{tmp}/plain.pt", *_IMAGES, "--out", "{tmp}/out"],
+        f"`--ckpt` {_LIGHTNING} '{{tmp}}/plain.pt': a plain torch.save file holding a dict of 1 keys without "
+        "'state_dict' / 'pytorch-lightning_version'; save models with Trainer.fit / trainer.save_checkpoint",
+        1, "views", absent=["out"]),
+    Row("predict", "`--ckpt` of the other model class", [*_PREDICT, "--model", "lrgt"],
+        "no model class loads the checkpoint '{tmp}/good.ckpt': LRGT: '{tmp}/good.ckpt' is a checkpoint of "
+        "Pix2VoxPlusPlus (lightning_vtr.models.pix2vox.Pix2VoxPlusPlus), not of LRGT: LRGT.load_from_checkpoint "
+        "cannot load it. Use Pix2VoxPlusPlus.load_from_checkpoint(...) (`lightning-vtr predict --model "
+        "lightning_vtr.models.pix2vox.Pix2VoxPlusPlus`).", 1, "views", absent=["out"]),
+    Row("predict", "`--images` missing", ["predict", "--ckpt", "{tmp}/good.ckpt", "--images", "{tmp}/nowhere", "--out", "{tmp}/out"],
+        "`--images` must name folders of pictures, got '{tmp}/nowhere' (not a folder)", 2, absent=["out"]),
+    Row("predict", "`--images` a folder without pictures", ["predict", "--ckpt", "{tmp}/good.ckpt", "--images", "{tmp}/other", "--out", "{tmp}/out"],
+        "no pictures in the image folder '{tmp}/other': expected files ending in .png, .jpg, .jpeg, .webp, .bmp "
+        "(case-insensitive, masks <stem>_mask.<ext> aside); it holds none", 2, "other", absent=["out"]),
+    Row("predict", "`--images` holds `a.png` that is not a picture", _PREDICT,
+        _NOT_A_PICTURE + "5 bytes PIL cannot read as a picture (another kind of file)", 1, "not_a_picture", absent=["out"]),
+    Row("predict", "`--images` holds a truncated PNG", _PREDICT,
+        _NOT_A_PICTURE + "a truncated picture (200 bytes)", 1, "truncated_picture", absent=["out"]),
+    Row("predict", "`--images` holds an empty `a.png`", _PREDICT,
+        _NOT_A_PICTURE + "an empty file", 1, "empty_picture", absent=["out"]),
+    Row("predict", "`--data` missing", ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"],
+        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"]),
+    Row("predict", "`--data` a folder of other files", ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/other", "--out", "{tmp}/out"],
+        _NO_METADATA % ("other", "other"), 2, "other", absent=["out"]),
+    Row("predict", "`--threshold 1.5`", [*_PREDICT, "--threshold", "1.5"],
+        "`--threshold` must be a number in (0, 1), got 1.5", 2, "views", absent=["out"]),
+    Row("predict", "`--key-tolerance 300`", [*_PREDICT, "--key-tolerance", "300"],
+        "`--key-tolerance` must be in [0, 255], got 300", 2, "views", absent=["out"]),
+    Row("predict", "`--batch-size 0`", [*_PREDICT, "--batch-size", "0"],
+        "argument --batch-size: expected a positive integer, got '0'", 2, argparse=True),
+    Row("predict", "`--out` holds other files", ["predict", "--ckpt", "{tmp}/good.ckpt", *_IMAGES, "--out", "{tmp}/other"],
+        "`--out` " + _OTHER % ("predictions.json", "other"), 2, "views_other"),
+    Row("predict", "`--out` is a file", ["predict", "--ckpt", "{tmp}/good.ckpt", *_IMAGES, "--out", "{tmp}/notes.txt"],
+        "`--out` must be a folder (new, empty or an earlier output), got '{tmp}/notes.txt' (a file)", 2, "views"),
+    Row("predict", "`--out` read-only (a refused write)", _PREDICT,
+        f"cannot write '{{tmp}}/out/.write-probe': {_PERMISSION}", 1, "refuse_probe", absent=["out"],
+        note="checked before the model loads; simulated (a root user's chmod does not refuse writes)"),
+    Row("predict", "disk full while exporting", _PREDICT,
+        f"cannot write '{{tmp}}/out/views/prediction.binvox': {_FULL}", 1, "full_export",
+        absent=["out/predictions.json", "out/index.html"], note="no predictions.json / index.html: not complete"),
+    # ------------------------------------------------------------------ report
+    Row("report", "`--data` missing", ["report", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"],
+        _NO_METADATA % ("nowhere", "nowhere"), 2, absent=["out"], note="before Lightning prints anything"),
+    Row("report", "`--data` a file", ["report", "--data", "{tmp}/notes.txt", "--out", "{tmp}/out"],
+        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/notes.txt' (a file)", 2, absent=["out"]),
+    Row("report", "`--data` with a truncated `metadata.json`", ["report", "--data", "{tmp}/data", "--out", "{tmp}/out"],
+        "{tmp}/data/metadata.json is not valid JSON: Unterminated string starting at: line 1 column 12 (char 11)",
+        1, "truncated_meta", absent=["out"]),
+    Row("report", "`--fraction 0`", ["report", "--fraction", "0", "--out", "{tmp}/out"],
+        "`--fraction` must be in (0, 1], got 0.0", 2, absent=["out"]),
+    Row("report", "`--seeds x`", ["report", "--seeds", "x"], "argument --seeds: invalid int value: 'x'", 2, argparse=True),
+    Row("report", "`--out` holds other files", ["report", "--out", "{tmp}/other"],
+        "`--out` " + _OTHER % ("seed_*", "other"), 2, "other"),
+    # ------------------------------------------------------------------ pix3d / evaluate-folder
+    Row("pix3d", "`--root` missing", ["pix3d", "--root", "{tmp}/nowhere", "--checkpoint", "{tmp}/good.ckpt", "--out", "{tmp}/out"],
+        "`--root` must be the Pix3D folder (pix3d.json, img/, ...), got '{tmp}/nowhere' (no such folder)", 2, absent=["out"]),
+    Row("pix3d", "`--root` without `pix3d.json`", _PIX3D,
+        "'{tmp}/pix3d/pix3d.json' does not exist: `root` must hold Pix3D's pix3d.json", 2, "pix3d_empty", absent=["out"]),
+    Row("pix3d", "`--root` with a truncated `pix3d.json`", _PIX3D,
+        "{tmp}/pix3d/pix3d.json is not valid JSON: Unterminated string starting at: line 1 column 3 (char 2)", 1,
+        "pix3d_truncated", absent=["out"]),
+    Row("pix3d", "`--checkpoint` missing", ["pix3d", "--root", "{tmp}/pix3d", "--checkpoint", "A={tmp}/none.ckpt", "--out", "{tmp}/out"],
+        "`--checkpoint` must be a checkpoint file, got '{tmp}/none.ckpt' (no such file)", 2, "pix3d_empty", absent=["out"]),
+    Row("pix3d", "`--checkpoint` truncated", ["pix3d", "--root", "{tmp}/pix3d", "--checkpoint", _TRUNC, "--out", "{tmp}/out"],
+        f"`--checkpoint` {_LIGHTNING} '{_TRUNC}': 5000 bytes torch cannot read (a truncated copy, or not a torch file)",
+        1, "pix3d_empty", absent=["out"]),
+    Row("pix3d", "`--margin 3`", [*_PIX3D, "--margin", "3"], "`--margin` must be in [0, 2], got 3.0", 2, absent=["out"]),
+    Row("evaluate-folder", "`--images` missing", [*_FOLDER[:2], "{tmp}/nowhere", *_FOLDER[3:], "--out", "{tmp}/out"],
+        "`--images` must be a folder, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"]),
+    Row("evaluate-folder", "`--checkpoint` a plain `torch.save` file",
+        [*_FOLDER[:-1], "{tmp}/plain.pt", "--out", "{tmp}/out"],
+        f"`--checkpoint` {_LIGHTNING} '{{tmp}}/plain.pt': a plain torch.save file holding a dict of 1 keys without "
+        "'state_dict' / 'pytorch-lightning_version'; save models with Trainer.fit / trainer.save_checkpoint",
+        1, "views", absent=["out"]),
+    Row("evaluate-folder", "`--out` a file", [*_FOLDER, "--out", "{tmp}/notes.txt"],
+        "`--out` must be a folder (new, empty or an earlier output), got '{tmp}/notes.txt' (a file)", 2, "views"),
+    # ------------------------------------------------------------------ fit / validate / test / predict (LightningCLI)
+    Row("fit", "`--config` missing", [*_FIT, "{tmp}/none.yaml"],
+        "`--config` must be a YAML config file, got '{tmp}/none.yaml' (no such file)", 2),
+    Row("fit", "`--config` empty", [*_FIT, "{tmp}/empty.yaml"], _CONFIG % "empty.yaml" + ": an empty file (0 bytes)", 1,
+        "configs"),
+    Row("fit", "`--config` truncated", [*_FIT, "{tmp}/truncated.yaml"],
+        _CONFIG % "truncated.yaml" + ": invalid YAML at line 2, column 1 (expected ',' or ']', but got '<stream "
+        "end>'; truncated?)", 1, "configs"),
+    Row("fit", "`--config` a binary file", [*_FIT, "{tmp}/good.ckpt"],
+        _CONFIG % "good.ckpt" + ": %d bytes that are not UTF-8 text (a binary file)", 1),
+    Row("fit", "`--config` a YAML list", [*_FIT, "{tmp}/list.yaml"],
+        _CONFIG % "list.yaml" + ": YAML holding a list, not a mapping of settings", 1, "configs"),
+    Row("fit", "`--trainer.max_epochs=abc`", ["fit", "--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus",
+        "--trainer.max_epochs=abc"], 'Parser key "trainer.max_epochs": Does not validate against any of the Union '
+        "subtypes Subtypes: [<class 'int'>, <class 'NoneType'>] Errors: - Expected a <class 'int'> - Expected a "
+        "<class 'NoneType'> Given value type: <class 'str'> Given value: abc", 2),
+    Row("test", "`--ckpt_path` truncated", ["test", "--config", "configs/pix2vox_tiny_vtr.yaml", "--ckpt_path", _TRUNC],
+        f"`--ckpt_path` {_LIGHTNING} '{_TRUNC}': 5000 bytes torch cannot read (a truncated copy, or not a torch file)",
+        1),
+    Row("validate", "`--data.root` missing", ["validate", "--config", "configs/pix2vox_tiny_vtr.yaml",
+        "--data.root", "{tmp}/nowhere"], _NO_METADATA % ("nowhere", "nowhere"), 2,
+        note="before the Trainer prints its banner"),
+    Row("predict", "(LightningCLI) `--config` missing", ["predict", "--config", "{tmp}/none.yaml"],
+        "`--config` must be a YAML config file, got '{tmp}/none.yaml' (no such file)", 2),
+]  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ setups
+def _checkpoints(tmp: Path) -> None:
+    """``good.ckpt`` (a tiny Pix2Vox++), ``trunc.ckpt`` (its first 5,000 bytes), ``empty.ckpt``, ``plain.pt``
+    (a plain ``torch.save``) and ``notes.txt``."""
+    import shutil
+
+    import torch
+
+    shutil.copy(_good_checkpoint(), tmp / "good.ckpt")
+    (tmp / "trunc.ckpt").write_bytes((tmp / "good.ckpt").read_bytes()[:5000])
+    (tmp / "empty.ckpt").write_bytes(b"")
+    torch.save({"weights": torch.zeros(2)}, tmp / "plain.pt")
+    (tmp / "notes.txt").write_text("my own notes\n")
+
+
+_GOOD: list[Path] = []
+
+
+def _good_checkpoint() -> Path:
+    """One tiny Pix2Vox++ checkpoint per test session (written once)."""
+    if not _GOOD:
+        import tempfile
+
+        import lightning as L
+        import torch
+
+        from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+        model = Pix2VoxPlusPlus(preset="tiny")
+        checkpoint = {
+            "state_dict": model.state_dict(),
+            "hyper_parameters": dict(model.hparams),
+            "pytorch-lightning_version": L.__version__,
+        }
+        model.on_save_checkpoint(checkpoint)
+        path = Path(tempfile.mkdtemp(prefix="bad_input_table_")) / "good.ckpt"
+        torch.save(checkpoint, path)
+        _GOOD.append(path)
+    return _GOOD[0]
+
+
+def _picture(path: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    noise = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)  # 3 kB: 200 bytes is a part
+    Image.fromarray(noise).save(path)
+
+
+def _views(tmp: Path, bad: bytes | None = None) -> None:
+    (tmp / "views").mkdir()
+    _picture(tmp / "views" / "b.png")
+    if bad is not None:
+        (tmp / "views" / "a.png").write_bytes(bad)
+
+
+def _truncate(source: Path, target: Path) -> None:
+    target.write_bytes(source.read_bytes()[:200])
+
+
+def _other(tmp: Path) -> None:
+    (tmp / "other").mkdir()
+    (tmp / "other" / "notes.txt").write_text("not mine")
+
+
+def _meta(tmp: Path, text: str) -> None:
+    (tmp / "data").mkdir()
+    (tmp / "data" / "metadata.json").write_text(text)
+
+
+def _refuse(monkeypatch: pytest.MonkeyPatch, module: Any, name: str, err: int, message: str) -> None:
+    def refuse(path: Any, *args: Any, **kwargs: Any) -> Any:
+        raise OSError(err, message, str(path))
+
+    monkeypatch.setattr(module, name, refuse, raising=False)
+
+
+def _refuse_probe(tmp: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import lightning_vtr.cli.arguments as arguments
+
+    _views(tmp)
+
+    def refuse(path: Any, *args: Any, **kwargs: Any) -> Any:
+        raise PermissionError(errno.EACCES, "Permission denied", str(path).rsplit("-", 1)[0])
+
+    monkeypatch.setattr(arguments, "open", refuse, raising=False)
+
+
+def _full_export(tmp: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import lightning_vtr.export as export
+
+    _views(tmp)
+
+    def full(directory: Any, *args: Any, **kwargs: Any) -> Any:
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(directory) / "prediction.binvox"))
+
+    monkeypatch.setattr(export, "export_prediction", full)
+
+
+def _pix3d(tmp: Path, text: str | None) -> None:
+    (tmp / "pix3d").mkdir()
+    if text is not None:
+        (tmp / "pix3d" / "pix3d.json").write_text(text)
+
+
+def _configs(tmp: Path) -> None:
+    (tmp / "empty.yaml").write_text("")
+    (tmp / "truncated.yaml").write_text("trainer: [max_epochs\n")
+    (tmp / "list.yaml").write_text("- trainer\n- model\n")
+
+
+SETUPS = {
+    "": lambda tmp, mp: None,
+    "other": lambda tmp, mp: _other(tmp),
+    "views": lambda tmp, mp: _views(tmp),
+    "views_other": lambda tmp, mp: (_views(tmp), _other(tmp)),
+    "not_a_picture": lambda tmp, mp: _views(tmp, b"hello"),
+    "truncated_picture": lambda tmp, mp: (_views(tmp), _truncate(tmp / "views" / "b.png", tmp / "views" / "a.png")),
+    "empty_picture": lambda tmp, mp: _views(tmp, b""),
+    "empty_meta": lambda tmp, mp: _meta(tmp, ""),
+    "truncated_meta": lambda tmp, mp: _meta(tmp, '{"format": "lightning_vtr.shap'),
+    "other_meta": lambda tmp, mp: _meta(tmp, '{"format": "pix2vox", "version": 1}'),
+    "refuse_build": lambda tmp, mp: _refuse(
+        mp,
+        __import__("lightning_vtr.data.builder").data.builder,
+        "atomic_write_json",
+        errno.EACCES,
+        "Permission denied",
+    ),
+    "full_build": lambda tmp, mp: _refuse(
+        mp, __import__("lightning_vtr.data.builder").data.builder, "atomic_write_json", errno.ENOSPC, "No space left"
+    ),
+    "refuse_probe": _refuse_probe,
+    "full_export": _full_export,
+    "pix3d_empty": lambda tmp, mp: _pix3d(tmp, None),
+    "pix3d_truncated": lambda tmp, mp: _pix3d(tmp, '[{"img'),
+    "configs": lambda tmp, mp: _configs(tmp),
+}
+
+
+def _fill(text: str, tmp: Path) -> str:
+    return text.replace("{tmp}", str(tmp))
+
+
+def _expected(row: Row, tmp: Path) -> str:
+    message = _fill(row.message, tmp)
+    if "%d bytes" in message:  # the binary-config row names the checkpoint's size
+        message = message % (tmp / "good.ckpt").stat().st_size
+    return message
+
+
+@pytest.mark.parametrize("row", ROWS, ids=[f"{r.command}: {r.bad_input}" for r in ROWS])
+def test_a_bad_input_gets_its_one_line_and_exit_status(row, tmp_path, monkeypatch, capsys):
+    from lightning_vtr.cli import main
+
+    _checkpoints(tmp_path)
+    SETUPS[row.setup](tmp_path, monkeypatch)
+    argv = [_fill(word, tmp_path) for word in row.argv]
+    if row.argparse:
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        code = exit_info.value.code
+    else:
+        code = main(argv)
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert code == row.code
+    if row.argparse:  # argparse: its usage line, then the error
+        lines = captured.err.splitlines()
+        assert lines[0].startswith("usage: lightning-vtr ")
+        assert lines[-1] == f"lightning-vtr {row.command}: error: {_expected(row, tmp_path)}"
+    else:
+        lines = captured.err.splitlines()
+        assert lines[-1] == f"lightning-vtr {row.command}: error: {_expected(row, tmp_path)}"
+        if row.command not in ("fit", "validate", "test") and "LightningCLI" not in row.bad_input:
+            assert lines == lines[-1:]  # one line, and no Lightning banner before it
+    for path in row.absent:
+        assert not (tmp_path / path).exists(), f"{path} was left behind"
+
+
+# ------------------------------------------------------------------------------------------ the docs table
+def docs_table() -> str:
+    """The Markdown table of :data:`ROWS` (``docs/bad_input.md`` holds it between its markers)."""
+    lines = ["| command | bad input | message (after `lightning-vtr COMMAND: error: `) | exit |", "|---|---|---|---|"]
+    for row in ROWS:
+        message = row.message.replace("{tmp}", "DIR").replace("%d", "N").replace("|", "\\|")
+        message = message.replace("<", "&lt;").replace(">", "&gt;")
+        if row.argparse:
+            message = f"(argparse: its usage line, then) {message}"
+        if row.note:
+            message = f"{message} *({row.note})*"
+        command = row.command if row.command != "predict" or "LightningCLI" not in row.bad_input else "predict"
+        lines.append(f"| `{command}` | {row.bad_input} | {message} | {row.code} |")
+    return "\n".join(lines) + "\n"
+
+
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "bad_input.md"
+_BEGIN, _END = "<!-- table: generated by tests/cli/test_bad_input_table.py -->", "<!-- end of table -->"
+
+
+def test_the_docs_table_is_the_tested_one():
+    text = DOCS.read_text()
+    table = text[text.index(_BEGIN) + len(_BEGIN) : text.index(_END)].strip("\n") + "\n"
+    assert table == docs_table(), "regenerate: python tests/cli/test_bad_input_table.py --write"
+
+
+if __name__ == "__main__":
+    if "--write" in sys.argv:
+        text = DOCS.read_text()
+        start, end = text.index(_BEGIN) + len(_BEGIN), text.index(_END)
+        DOCS.write_text(text[:start] + "\n" + docs_table() + text[end:])
+    else:
+        print(docs_table(), end="")
