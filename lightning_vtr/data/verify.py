@@ -31,7 +31,15 @@ from lightning_vtr.utils.validation import check_int
 __all__ = ["PROBLEM_KINDS", "DatasetProblem", "VerifyReport", "verify_dataset"]
 
 #: What a :class:`DatasetProblem` can be about, in the order a file is checked.
-PROBLEM_KINDS: tuple[str, ...] = ("metadata", "missing", "unreadable", "image_size", "view_count", "voxel_resolution")
+PROBLEM_KINDS: tuple[str, ...] = (
+    "metadata",
+    "missing",
+    "unreadable",
+    "image_size",
+    "view_count",
+    "voxel_resolution",
+    "inconsistent",
+)
 
 #: Problems an error message lists before it says how many more there are.
 _LISTED_PROBLEMS = 20
@@ -122,7 +130,10 @@ class _Expected:
 def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bool = True) -> VerifyReport:
     """Read every image and voxel file of a ShapeNet-VTR dataset once and list what is wrong.
 
-    Checked per object of ``metadata.json``: its directory and ``model.binvox`` exist; the voxel file decodes
+    Checked once: ``splits.json`` exists, is JSON of ``{category: {split: [object ids]}}`` and puts every object
+    in the split ``metadata.json`` gives it (kind ``"inconsistent"`` otherwise). Checked per object of
+    ``metadata.json``: its ``object.json`` exists, is valid and names the object; its ``mesh.ply``, where there is one (the renderer's), loads with faces; its
+    directory and ``model.binvox`` exist; the voxel file decodes
     to ``R x R x R`` with ``R = metadata["resolution"]``; every view set of ``metadata["view_sets"]`` lists
     ``metadata["views_per_set"]`` viewpoints and its directory holds exactly those images, ``00.png`` ..;
     every image decodes and is ``image_size x image_size``. Each problem names the file and, where there is
@@ -166,6 +177,7 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
 
     # 2. check the objects in parallel, in metadata order
     report = VerifyReport(root=root, objects=len(objects))
+    report.problems.extend(_check_splits(root, meta))
     bar = tqdm(total=len(objects), desc=f"verifying {root.name}", unit="obj", disable=not progress, dynamic_ncols=True)
     for problems, files in _map_objects(expected, objects, workers or _usable_cpus()):
         report.problems.extend(problems)
@@ -229,6 +241,8 @@ def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[Datase
             DatasetProblem(directory, "missing", f"metadata.json lists object {key!r} but its directory does not exist")
         )
         return problems, 0
+    problems += _check_object_json(directory, category, object_id)
+    problems += _check_mesh(directory / "mesh.ply")
     voxel_path = directory / "model.binvox"
     files = int(voxel_path.is_file())
     voxel_problem = _check_voxels(voxel_path, expected.resolution)
@@ -245,6 +259,74 @@ def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[Datase
         problems += set_problems
         files += set_files
     return problems, files
+
+
+def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
+    """``splits.json``: present, ``{category: {split: [ids]}}``, and agreeing with ``metadata.json``'s splits."""
+    import json
+
+    path = root / "splits.json"
+    if not path.is_file():
+        return [DatasetProblem(path, "missing", "the dataset's splits.json does not exist")]
+    try:
+        splits = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return [DatasetProblem(path, "unreadable", f"cannot read splits.json: {err}")]
+    listed: dict[str, str] = {}
+    if isinstance(splits, Mapping):
+        for category, parts in splits.items():
+            for split, ids in parts.items() if isinstance(parts, Mapping) else ():
+                for oid in ids if isinstance(ids, list) else ():
+                    listed[f"{category}/{oid}"] = split
+    if not isinstance(splits, Mapping) or not listed and meta["objects"]:
+        return [
+            DatasetProblem(path, "unreadable", "splits.json must map categories to {split: [object ids]}", None, None)
+        ]
+    problems = []
+    for key, info in meta["objects"].items():
+        split = info.get("split") if isinstance(info, Mapping) else None
+        if split in SPLITS and key in listed and listed[key] != split:  # other faults are metadata.json's
+            problems.append(
+                DatasetProblem(
+                    path, "inconsistent", f"splits.json disagrees with metadata.json on {key!r}", split, listed.get(key)
+                )
+            )
+    return problems
+
+
+def _check_object_json(directory: Path, category: str, object_id: str) -> list[DatasetProblem]:
+    """``object.json``: present, valid, and naming the object."""
+    from lightning_vtr.data.format import DatasetFormatError, read_object_json
+
+    path = directory / "object.json"
+    if not path.is_file():
+        return [DatasetProblem(path, "missing", "the object's object.json does not exist")]
+    try:
+        own = read_object_json(directory)
+    except DatasetFormatError as err:
+        return [DatasetProblem(path, "unreadable", f"invalid object.json: {err}")]
+    problems = []
+    if (own["category"], own["object_id"]) != (category, object_id):
+        found = f"{own['category']}/{own['object_id']}"
+        problems.append(
+            DatasetProblem(path, "inconsistent", "object.json names another object", f"{category}/{object_id}", found)
+        )
+    return problems
+
+
+def _check_mesh(path: Path) -> list[DatasetProblem]:
+    """``mesh.ply`` (optional): where there is one, it loads and has faces."""
+    if not path.is_file():
+        return []
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as err:  # trimesh raises many kinds for a damaged file
+        return [DatasetProblem(path, "unreadable", f"cannot read the mesh: {err}")]
+    if len(getattr(mesh, "faces", ())) == 0:
+        return [DatasetProblem(path, "unreadable", "the mesh has no faces")]
+    return []
 
 
 def _check_voxels(path: Path, resolution: int) -> DatasetProblem | None:

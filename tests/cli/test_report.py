@@ -22,6 +22,8 @@ def captured(monkeypatch):
         return {"markdown": "table", "paths": {}}
 
     monkeypatch.setattr("lightning_vtr.experiments.report.run_report", fake_run_report)
+    # --data and --out name no real folders here (tests/cli/test_bad_input_table.py checks them)
+    monkeypatch.setattr("lightning_vtr.cli.report.check_inputs", lambda args: None)
     return configs
 
 
