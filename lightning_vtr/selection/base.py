@@ -11,6 +11,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from lightning_vtr.utils.validation import check_probabilities
+
+#: The hint of a model whose predictions (queried by VIAT and the input score) are not probabilities.
+_PROBABILITIES_HINT = (
+    "at the selector's candidate views; did predict_voxels return logits? apply torch.sigmoid to them; "
+    "non-finite values mean the model diverged"
+)
+
 __all__ = ["SelectionContext", "ViewSelector", "check_categories", "view_set_losses"]
 
 
@@ -91,6 +99,7 @@ def view_set_losses(sets: Tensor, target: Tensor, context: SelectionContext, bat
     losses = []
     for start in range(0, inputs.shape[0], chunk):
         pred = context.model.predict_voxels(inputs[start : start + chunk])
+        check_probabilities("predict_voxels", pred.detach(), _PROBABILITIES_HINT)  # like the callback's own check
         losses.append(torch.as_tensor(context.loss_fn(pred, reference[start : start + chunk])).reshape(-1))
     return torch.cat(losses).reshape(batch, pop).detach().cpu()
 

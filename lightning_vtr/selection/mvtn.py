@@ -186,6 +186,12 @@ class MVTNSelector(ViewSelector):
             self.network.eval()
             with torch.no_grad():
                 views = self.views(features)
+        if not torch.isfinite(views).all():  # the network diverged (e.g. a too large lr): say so, not NaN views
+            bad = int((~torch.isfinite(views)).any(-1).sum())
+            raise ValueError(
+                f"MVTN's network must predict finite views, got {bad} of {views.shape[0] * views.shape[1]} "
+                f"non-finite (yaw, pitch) pairs after {self.steps} training steps; lower `lr` (now {self.lr:g})"
+            )
         yaw = wrap_yaw(views[..., 0])
         out = torch.stack([yaw, views[..., 1].clamp(-90.0, 90.0)], dim=-1)
         return out.to(predicted.dtype if predicted.is_floating_point() else torch.float32)
