@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from lightning_vtr.models.layers import VolumeHeadTransposed, channels_last_3d
 from lightning_vtr.models.vit import Attention, Block, CrossAttention, Mlp
 from lightning_vtr.utils.validation import check_int
 
@@ -104,7 +105,7 @@ class DecoderStage(nn.Module):
         self.blocks = nn.ModuleList(Block(width, num_heads, qkv_bias=False, norm_eps=1e-5) for _ in range(depth))
 
     def forward(self, x: Tensor) -> Tensor:
-        x = self.upsample(x)
+        x = self.upsample(channels_last_3d(x))
         if not self.blocks:
             return x
         tokens = patch_tokens(x, self.patch)
@@ -172,9 +173,11 @@ class ProgressiveUpsamplingDecoder(nn.Module):
             stages.append(DecoderStage(c_in, channels, patch, num_heads, stage_depth))
             c_in = channels
         self.stages = nn.ModuleList(stages)
-        self.head = nn.ConvTranspose3d(c_in, 1, kernel_size=1, bias=False)
+        self.head = VolumeHeadTransposed(c_in)
         self.resolution = query_grid * 2 ** len(upsample_channels)
         self.reset_parameters()
+        # the upsampling convolutions in the layout of their inputs (see lightning_vtr.models.layers)
+        self.stages.to(memory_format=torch.channels_last_3d)
 
     def reset_parameters(self) -> None:
         """The released code's initialisation (see the class docstring)."""

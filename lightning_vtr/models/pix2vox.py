@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
 from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.layers import VolumeHead, channels_last_3d
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
 from lightning_vtr.utils.validation import check_choice, check_type
@@ -154,10 +155,10 @@ class _Decoder(nn.Module):
         super().__init__()
         widths = [in_channels, *channels]
         self.layers = nn.Sequential(*[_tconv3d(a, b) for a, b in zip(widths[:-1], widths[1:])])
-        self.to_volume = nn.Conv3d(channels[-1], 1, 1, bias=False)
+        self.to_volume = VolumeHead(channels[-1])
 
     def forward(self, x: Tensor) -> Tensor:
-        features = self.layers(x)
+        features = self.layers(channels_last_3d(x))
         return torch.cat([features, torch.sigmoid(self.to_volume(features))], dim=1)
 
     def reference_init_(self) -> None:
@@ -225,7 +226,7 @@ class _Refiner(nn.Module):
         self.up3 = nn.Sequential(nn.ConvTranspose3d(c1, 1, 4, stride=2, padding=1, bias=False), nn.Sigmoid())
 
     def forward(self, coarse: Tensor) -> Tensor:
-        d1 = self.down1(coarse.unsqueeze(1))
+        d1 = self.down1(channels_last_3d(coarse.unsqueeze(1)))
         d2 = self.down2(d1)
         d3 = self.down3(d2)
         x = d3 + self.fc(d3.flatten(1)).view(-1, *self._bottleneck)
@@ -486,6 +487,11 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         if weights_file is not None:
             load_torchvision_resnet50(self.encoder.backbone, weights_file)
         self.encoder.backbone.requires_grad_(not freeze_backbone)
+
+        # 5. the 3-D layers' weights in the layout of their activations (see lightning_vtr.models.layers): a weight
+        #    in PyTorch's default layout sends a one-channel input (the refiner's) down the slow path
+        for part in (self.decoder, self.merger, self.refiner):
+            part.to(memory_format=torch.channels_last_3d)
 
     @classmethod
     def from_official_checkpoint(

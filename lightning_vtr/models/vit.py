@@ -81,7 +81,9 @@ class Attention(nn.Module):
         """``(N, T, D)`` tokens to q, k, v of shape ``(N, heads, T, head_dim)`` each."""
         n, t, _ = x.shape
         qkv = self.qkv(x).reshape(n, t, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
-        return qkv[0], qkv[1], qkv[2]
+        # unbind: one gradient buffer in backward (indexing qkv[i] three times zero-fills three)
+        q, k, v = qkv.unbind(0)
+        return q, k, v
 
     @staticmethod
     def merge_heads(x: Tensor) -> Tensor:
@@ -118,7 +120,7 @@ class CrossAttention(nn.Module):
         n, nq, _ = x.shape
         h, d = self.num_heads, self.head_dim
         q = self.q(x).reshape(n, nq, h, d).transpose(1, 2)
-        k, v = self.kv(memory).reshape(n, memory.shape[1], 2, h, d).permute(2, 0, 3, 1, 4)
+        k, v = self.kv(memory).reshape(n, memory.shape[1], 2, h, d).permute(2, 0, 3, 1, 4).unbind(0)
         if logit_bias is not None:
             logit_bias = logit_bias.to(q.dtype).expand(n, h, nq, memory.shape[1])
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=logit_bias)

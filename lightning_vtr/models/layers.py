@@ -1,0 +1,68 @@
+"""Layers shared by the reconstruction models, written for fast CPU training.
+
+oneDNN, PyTorch's CPU convolution backend, runs 3-D convolutions with few channels (1 to 20) through
+reference kernels when the activations are in PyTorch's default layout; their backward pass can take
+20 times longer than in the ``channels_last_3d`` layout. A convolution with one output channel and a
+``1^3`` kernel has no fast kernel in either layout. The helpers here keep the models' math and
+parameters (checkpoints load unchanged) and avoid both slow paths.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["VolumeHead", "VolumeHeadTransposed", "channels_last_3d"]
+
+
+def channels_last_3d(x: Tensor) -> Tensor:
+    """``x (N, C, D, H, W)`` in the ``channels_last_3d`` memory layout (a copy only if it is not already).
+
+    Example:
+        >>> channels_last_3d(torch.zeros(2, 4, 8, 8, 8)).stride()
+        (2048, 1, 256, 32, 4)
+    """
+    return x.contiguous(memory_format=torch.channels_last_3d)
+
+
+def _weighted_channel_sum(x: Tensor, weight: Tensor) -> Tensor:
+    """``(N, C, D, H, W)`` -> ``(N, 1, D, H, W)``: the sum over channels weighted by ``weight (C,)``."""
+    return torch.einsum("ncdhw,c->ndhw", x, weight).unsqueeze(1)
+
+
+class VolumeHead(nn.Conv3d):
+    """``nn.Conv3d(in_channels, 1, kernel_size=1, bias=False)``, computed as a weighted sum over channels.
+
+    Same parameter (``weight (1, C, 1, 1, 1)``) and output ``(N, 1, D, H, W)`` as the convolution it
+    replaces, without oneDNN's slow one-output kernel.
+
+    Example:
+        >>> head = VolumeHead(4)
+        >>> head(torch.zeros(2, 4, 8, 8, 8)).shape
+        torch.Size([2, 1, 8, 8, 8])
+    """
+
+    def __init__(self, in_channels: int) -> None:
+        super().__init__(in_channels, 1, kernel_size=1, bias=False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return _weighted_channel_sum(x, self.weight.reshape(-1))
+
+
+class VolumeHeadTransposed(nn.ConvTranspose3d):
+    """``nn.ConvTranspose3d(in_channels, 1, kernel_size=1, bias=False)``, as a weighted sum over channels.
+
+    Same parameter (``weight (C, 1, 1, 1, 1)``) and output ``(N, 1, D, H, W)`` as the transposed
+    convolution it replaces (a ``1^3`` transposed convolution is the same map as a ``1^3`` convolution).
+
+    Example:
+        >>> head = VolumeHeadTransposed(3)
+        >>> head(torch.zeros(2, 3, 8, 8, 8)).shape
+        torch.Size([2, 1, 8, 8, 8])
+    """
+
+    def __init__(self, in_channels: int) -> None:
+        super().__init__(in_channels, 1, kernel_size=1, bias=False)
+
+    def forward(self, x: Tensor) -> Tensor:  # type: ignore[override]  # no output_size: the map is 1^3
+        return _weighted_channel_sum(x, self.weight.reshape(-1))
