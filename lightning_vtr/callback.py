@@ -109,6 +109,10 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     Only the reconstruction model is needed at inference; nothing of this callback is.
 
+    Under mixed precision (``Trainer(precision="bf16-mixed")``, ``"16-mixed"``) the model predicts in the
+    Trainer's autocast, as in validation; the error volumes and the selection use those predictions cast to
+    float32, and the synthesized images are stored exactly as the synthesizer returns them (uint8).
+
     Requirements: ``Trainer(reload_dataloaders_every_n_epochs=1)``; a datamodule with the
     :class:`~lightning_vtr.data.VTRDataModule` API (``split_records``, ``eval_item``, ``object_views``,
     ``add_samples``, ``transform``); a model satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
@@ -379,7 +383,10 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     @torch.no_grad()
     def _predict(self, pl_module: L.LightningModule, images: list[Tensor]) -> Tensor:
-        """``predict_voxels`` over ``images`` (each ``(V, 3, H, W)``) in batches: ``(N, R, R, R)`` probabilities.
+        """``predict_voxels`` over ``images`` (each ``(V, 3, H, W)``) in batches: ``(N, R, R, R)`` float32 probabilities.
+
+        The model runs in the Trainer's precision context, as in validation (autocast under ``bf16-mixed`` /
+        ``16-mixed``); its output is cast to float32, so error volumes and view selection are in float32.
 
         Raises:
             ValueError: the model returned another batch size or anything but finite values in ``[0, 1]``.
@@ -388,7 +395,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
         preds = []
         for start in range(0, len(images), self.batch_size):
             batch = torch.stack(images[start : start + self.batch_size]).to(pl_module.device)
-            out = pl_module.predict_voxels(batch)
+            with pl_module.trainer.precision_plugin.forward_context():
+                out = pl_module.predict_voxels(batch)
             if not isinstance(out, Tensor) or out.ndim != 4 or out.shape[0] != batch.shape[0]:
                 found = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
                 raise ValueError(

@@ -277,9 +277,12 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
     def predict_voxels(self, images: Tensor) -> Tensor:
         """Occupancy probabilities ``(B, R, R, R)`` for images ``(B, V, 3, H, W)``.
 
-        Gradients are tracked as usual: wrap the call in ``torch.no_grad()`` for inference.
+        Half-precision outputs (``bfloat16`` / ``float16``, e.g. under the autocast of ``precision="bf16-mixed"``
+        or ``"16-mixed"``) are returned as ``float32``; other dtypes as the network gives them. Gradients are
+        tracked as usual: wrap the call in ``torch.no_grad()`` for inference.
         """
-        return self(images)["voxels"]
+        voxels = self(images)["voxels"]
+        return voxels.float() if voxels.dtype in (torch.bfloat16, torch.float16) else voxels
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
         return self.predict_voxels(batch["images"])

@@ -535,7 +535,15 @@ class LRGT(VoxelReconstructionModule):
         return {"voxels": self.network(images)}
 
     def loss(self, outputs: dict[str, Tensor], target: Tensor) -> Tensor:
-        return dice_loss(outputs["voxels"], target)
+        """:func:`dice_loss` of the probabilities, in float32 with autocast off.
+
+        Under ``precision="bf16-mixed"`` / ``"16-mixed"`` the network's output may be half precision; sums over the
+        ``R^3`` voxels in it would lose the loss's digits (bfloat16 keeps 8 bits), so probabilities and target are
+        cast to float32 first, as :meth:`Pix2VoxPlusPlus.loss <lightning_vtr.models.Pix2VoxPlusPlus.loss>` does.
+        """
+        probs = outputs["voxels"]
+        with torch.autocast(device_type=probs.device.type, enabled=False):
+            return dice_loss(probs.float(), target.float())
 
     def configure_optimizers(self):
         hp = self.hparams
