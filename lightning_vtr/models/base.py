@@ -133,8 +133,8 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
         self.val_metrics = metrics()
         self.test_metrics = nn.ModuleDict({name: metrics() for name in VIEW_SETS})
-        #: test dataloader index -> items of it this process has been given so far in the test epoch
-        self._test_items_seen: dict[int, int] = {}
+        #: "val" / "test" -> dataloader index -> items of it this process has been given so far in the epoch
+        self._items_seen: dict[str, dict[int, int]] = {"val": {}, "test": {}}
 
     @_restricted_classmethod
     def load_from_checkpoint(
@@ -310,14 +310,31 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> None:
         images, voxels = self._batch(batch)
+        # The whole batch goes forward (under DDP every process runs the same forwards as before); the repeats a
+        # padding sampler appends are left out of the loss and the metrics, so every object counts once.
         outputs = self(images)
-        self.log("val/loss", self.loss(outputs, voxels), batch_size=images.shape[0], add_dataloader_idx=False)
-        probs = outputs["voxels"].detach()
         if self.log_sheets and batch_idx == 0 and dataloader_idx == 0:
-            self._sheet_batch = (batch, probs)
-        self.val_metrics["iou"].update(probs, voxels, batch.get("category"))
+            self._sheet_batch = (batch, outputs["voxels"].detach())
+        n = images.shape[0]
+        keep = self._unpadded_items("val", n, batch_idx, dataloader_idx)
+        categories = batch.get("category")
+        if keep < n:
+            outputs = {k: v[:keep] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v for k, v in outputs.items()}
+            voxels = voxels[:keep]
+            categories = categories[:keep] if categories is not None else None
+        if keep == 0:
+            return
+        self.log("val/loss", self.loss(outputs, voxels), batch_size=keep, add_dataloader_idx=False)
+        probs = outputs["voxels"].detach()
+        self.val_metrics["iou"].update(probs, voxels, categories)
         if self.validation_fscore:
-            self.val_metrics["fscore"].update(probs, voxels, batch.get("category"))
+            self.val_metrics["fscore"].update(probs, voxels, categories)
+
+    def on_validation_epoch_start(self) -> None:
+        # As in ``on_test_epoch_start``: own states in this process's memory (``ddp_spawn`` shares them).
+        for metric in self.val_metrics.values():
+            metric.reset()
+        self._items_seen["val"] = {}
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics(self.val_metrics, "val", per_category=False)
@@ -335,7 +352,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
                 f"`batch['view_set']` must list one view-set name per sample ({images.shape[0]}), got {view_sets!r}"
             )
         categories = batch.get("category")
-        keep = self._unpadded_test_items(images.shape[0], batch_idx, dataloader_idx)
+        keep = self._unpadded_items("test", images.shape[0], batch_idx, dataloader_idx)
         if keep == 0:
             return
         if keep < images.shape[0]:
@@ -357,30 +374,33 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         for group in self.test_metrics.values():
             for metric in group.values():
                 metric.reset()
-        self._test_items_seen = {}
+        self._items_seen["test"] = {}
 
-    def _unpadded_test_items(self, batch_size: int, batch_idx: int, dataloader_idx: int) -> int:
-        """How many leading items of a test batch are this process's share of the dataset, not padding.
+    def _unpadded_items(self, stage: str, batch_size: int, batch_idx: int, dataloader_idx: int) -> int:
+        """How many leading items of a ``stage`` (``"val"`` / ``"test"``) batch are this process's share of the
+        dataset, not padding.
 
         Under DDP Lightning's default :class:`~torch.utils.data.DistributedSampler` (``drop_last=False``) appends
         repeats of the first items to its index list until it divides among the ``n`` processes, and hands
         position ``p`` of the list to rank ``p % n``. The repeats therefore are the last items of each shard:
-        rank ``r`` owns only the first ``len(range(r, N, n))`` of its items. Counting them keeps every test object
-        once in the means whatever loader the model is tested with (``VTRDataModule`` does not pad at all).
+        rank ``r`` owns only the first ``len(range(r, N, n))`` of its items. Counting them keeps every object once
+        in the means whatever loader the model is evaluated with (``VTRDataModule``'s test loaders do not pad at
+        all; its validation loader keeps Lightning's padding sampler, so every process runs as many batches).
         """
-        seen = 0 if batch_idx == 0 else self._test_items_seen.get(dataloader_idx, 0)
-        self._test_items_seen[dataloader_idx] = seen + batch_size
-        sampler = self._test_sampler(dataloader_idx)
+        seen_by_loader = self._items_seen[stage]
+        seen = 0 if batch_idx == 0 else seen_by_loader.get(dataloader_idx, 0)
+        seen_by_loader[dataloader_idx] = seen + batch_size
+        sampler = self._eval_sampler(stage, dataloader_idx)
         if sampler is None or sampler.total_size <= len(sampler.dataset):
             return batch_size  # no padding: one process, an unpadded sampler, or drop_last
         owned = len(range(sampler.rank, len(sampler.dataset), sampler.num_replicas))
         return max(0, min(batch_size, owned - seen))
 
-    def _test_sampler(self, dataloader_idx: int) -> DistributedSampler | None:
-        """The distributed sampler of test dataloader ``dataloader_idx``, if it has one."""
+    def _eval_sampler(self, stage: str, dataloader_idx: int) -> DistributedSampler | None:
+        """The distributed sampler of ``stage`` (``"val"`` / ``"test"``) dataloader ``dataloader_idx``, if any."""
         if self._trainer is None:  # a step called by hand (Lightning's own properties test `_trainer` likewise)
             return None
-        loaders = self.trainer.test_dataloaders
+        loaders = self.trainer.val_dataloaders if stage == "val" else self.trainer.test_dataloaders
         if isinstance(loaders, dict):
             loaders = list(loaders.values())
         elif not isinstance(loaders, (list, tuple)):
