@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers import one_thread
 from torch import nn
 from torch.utils.data import DataLoader
 
@@ -18,6 +19,10 @@ from lightning_vtr.models.resnet import ResNet50Stem
 from lightning_vtr.protocol import ReconstructionModel
 
 R = 32
+
+# One torch thread for the 120-epoch overfitting run: its tensors are tiny, and on the shared 2-core test machine
+# a second intra-op thread only adds contention (about 3x slower under load).
+_one_thread = pytest.fixture(name="_one_thread")(one_thread)
 
 
 @pytest.fixture(scope="module")
@@ -173,7 +178,7 @@ def _shapes() -> torch.Tensor:
 
 
 @pytest.mark.slow
-def test_tiny_preset_overfits_a_handful_of_objects():
+def test_tiny_preset_overfits_a_handful_of_objects(_one_thread):
     torch.manual_seed(0)
     voxels = _shapes()
     # One view whose three channels are the silhouettes along x, y and z: they determine these shapes.
