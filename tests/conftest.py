@@ -33,3 +33,19 @@ def tiny_dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny_vtr")
     build_dataset(root, source="procedural", **TINY_DATASET)
     return root
+
+
+@pytest.fixture(scope="session")
+def pix2vox_run_4_epochs(tiny_dataset, tmp_path_factory):
+    """An uninterrupted ``fit_pix2vox(tiny_dataset, ..., epochs=4)`` on one torch thread, fitted once and read by the
+    resume tests (tests/test_resume_weights.py, tests/test_kill_during_generation.py). Returns ``(trainer, run dir)``."""
+    from helpers import fit_pix2vox
+
+    run = tmp_path_factory.mktemp("pix2vox_full") / "full"
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        trainer = fit_pix2vox(tiny_dataset, run, epochs=4)
+    finally:
+        torch.set_num_threads(previous)
+    return trainer, run

@@ -102,10 +102,35 @@ def test_setup_refuses_a_model_without_the_protocol(tiny_dataset, tmp_path):
         )
 
 
-def test_generates_pool_samples_every_epoch_but_the_last(tiny_dataset, tmp_path):
-    dm = make_datamodule(tiny_dataset, tmp_path)
+class TrainSetSizeProbe(L.Callback):
+    """Records the size of the train loader's dataset at the start of every epoch."""
+
+    def __init__(self) -> None:
+        self.sizes: list[int] = []
+
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        self.sizes.append(len(trainer.train_dataloader.dataset))
+
+
+@pytest.fixture(scope="module")
+def pool_run(tiny_dataset, tmp_path_factory):
+    """One 3-epoch fit of EmptyPredictionModel with the default callback (error-guided, pool, 20 %, a selection
+    before epoch 0), fitted once for the tests that read it: ``(datamodule, callback, run dir, train set sizes)``."""
+    root = tmp_path_factory.mktemp("pool_run")
+    dm = make_datamodule(tiny_dataset, root)
     callback = make_callback(fraction=0.2)
-    make_trainer(tmp_path, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
+    probe = TrainSetSizeProbe()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors; the selection of an empty prediction does not depend on it
+    try:
+        make_trainer(root, 3, [callback, probe]).fit(EmptyPredictionModel(), datamodule=dm)
+    finally:
+        torch.set_num_threads(threads)
+    return dm, callback, root, probe.sizes
+
+
+def test_generates_pool_samples_every_epoch_but_the_last(pool_run):
+    dm, callback, tmp_path, _ = pool_run
     samples = dm.generated_samples
     # 21 training objects, round(0.2 * 21) = 4 per selection: before epoch 0 (from the model the fit starts
     # with, labelled -1) and after epochs 0 and 1 (not the last, not the sanity check)
@@ -165,13 +190,15 @@ def _fit(root, tmp_path, epochs, ckpt=None, selector=None):
 @pytest.mark.slow
 @pytest.mark.parametrize("guided", sorted(GUIDED))
 def test_resume_generates_exactly_what_an_uninterrupted_run_does(tiny_dataset, tmp_path, guided):
-    full, full_cb = _fit(tiny_dataset, tmp_path / "full", 4, selector=GUIDED[guided]())
-    _fit(tiny_dataset, tmp_path / "part", 2, selector=GUIDED[guided]())
+    # Interrupted after epoch 0 (its last, which generates nothing): the resume catches up epoch 0's generation,
+    # then trains epoch 1 and generates after it as the uninterrupted run does.
+    full, full_cb = _fit(tiny_dataset, tmp_path / "full", 3, selector=GUIDED[guided]())
+    _fit(tiny_dataset, tmp_path / "part", 1, selector=GUIDED[guided]())
     ckpt = str(tmp_path / "part" / "ckpt" / "last.ckpt")
-    resumed, resumed_cb = _fit(tiny_dataset, tmp_path / "part", 4, ckpt=ckpt, selector=GUIDED[guided]())
+    resumed, resumed_cb = _fit(tiny_dataset, tmp_path / "part", 3, ckpt=ckpt, selector=GUIDED[guided]())
     assert [c[:4] for c in generated_contents(resumed)] == [c[:4] for c in generated_contents(full)]
     assert generated_contents(resumed) == generated_contents(full)
-    assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
+    assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3
     assert resumed_cb.pool.categories() == full_cb.pool.categories()
     for category in full_cb.pool.categories():
         ids_a, sets_a = full_cb.pool.view_sets(category)
@@ -202,11 +229,14 @@ class DatasetDigestProbe(L.Callback):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("guided", sorted(GUIDED))
-def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path, guided):
-    single = tmp_path / "single"
-    dm = make_datamodule(tiny_dataset, single)
-    callback = make_callback(fraction=0.2, selector=GUIDED[guided]())
-    make_trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
+def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path, guided, request):
+    if guided == "per_object":  # the default selector: the shared fit of the same arguments
+        single = request.getfixturevalue("pool_run")[2]
+    else:
+        single = tmp_path / "single"
+        dm = make_datamodule(tiny_dataset, single)
+        callback = make_callback(fraction=0.2, selector=GUIDED[guided]())
+        make_trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
 
     ddp = tmp_path / "ddp"
     probe = DatasetDigestProbe(str(tmp_path / "digests.jsonl"))
@@ -245,25 +275,20 @@ def test_source_images_are_decoded_only_for_synthesizers_that_read_them(tiny_dat
     assert torch.allclose(diffused.source_viewpoints[:, 1], torch.full((8,), 30.0))
 
 
-class TrainSetSizeProbe(L.Callback):
-    """Records the size of the train loader's dataset at the start of every epoch."""
-
-    def __init__(self) -> None:
-        self.sizes: list[int] = []
-
-    def on_train_epoch_start(self, trainer, pl_module) -> None:
-        self.sizes.append(len(trainer.train_dataloader.dataset))
-
-
 @pytest.mark.parametrize("select_at_start, expected", [(True, [25, 29, 33]), (False, [21, 25, 29])])
-def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, select_at_start, expected):
+def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, request, select_at_start, expected):
     # 21 training objects, 4 new samples per selection; with select_at_start, the selection made from the model
     # the fit starts with is in epoch 0's loader (Lightning built that loader before on_train_start).
-    dm = make_datamodule(tiny_dataset, tmp_path)
-    probe = TrainSetSizeProbe()
-    callback = make_callback(fraction=0.2, select_at_start=select_at_start)
-    make_trainer(tmp_path, 3, [callback, probe]).fit(EmptyPredictionModel(), datamodule=dm)
-    assert probe.sizes == expected
+    if select_at_start:  # the default: the shared fit of the same arguments
+        _, callback, _, sizes = request.getfixturevalue("pool_run")
+        assert callback.select_at_start
+    else:
+        dm = make_datamodule(tiny_dataset, tmp_path)
+        probe = TrainSetSizeProbe()
+        callback = make_callback(fraction=0.2, select_at_start=select_at_start)
+        make_trainer(tmp_path, 3, [callback, probe]).fit(EmptyPredictionModel(), datamodule=dm)
+        sizes = probe.sizes
+    assert sizes == expected
 
 
 def test_search_more_objects_than_get_views(tiny_dataset, tmp_path):

@@ -19,7 +19,7 @@ from PIL import Image
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 
-# The child trains like `fit_pix2vox(..., epochs=3)`. It reports every generated sample once its files are written
+# The child trains like `fit_pix2vox(..., epochs=4)`, the session's uninterrupted run. It reports every generated sample once its files are written
 # (done.jsonl); in the generation after epoch 1 (3 samples), once one sample is done, it writes half of the next
 # sample's first PNG into the atomic writer's temporary file, says so (killable) and waits to be killed. The last
 # checkpoint then is epoch 0's (ModelCheckpoint saves at the train epoch's end, after the callback's generation).
@@ -70,7 +70,7 @@ def save(image, path):
 
 datamodule_module.write_generated_sample = write
 dataset_module._atomic_save_png = save
-fit_pix2vox(root, Path(run_dir), epochs=3)
+fit_pix2vox(root, Path(run_dir), epochs=4)
 """
 
 
@@ -84,7 +84,7 @@ def _decodes(path: Path) -> bool:
 
 
 @pytest.mark.slow
-def test_a_kill_while_writing_samples_loses_nothing(tiny_dataset, tmp_path):
+def test_a_kill_while_writing_samples_loses_nothing(tiny_dataset, pix2vox_run_4_epochs, tmp_path):
     run, report = tmp_path / "run", tmp_path / "report"
     report.mkdir()
     (tmp_path / "child.py").write_text(_CHILD)
@@ -122,9 +122,9 @@ def test_a_kill_while_writing_samples_loses_nothing(tiny_dataset, tmp_path):
     assert all(_decodes(run / "gen" / e["dir"] / n) for e in on_disk for n in e["images"])
 
     # 2. resume from the last checkpoint (epoch 0's end): epoch 1 trains again and its generation is redone
-    resumed = fit_pix2vox(tiny_dataset, run, epochs=3, ckpt_path=str(run / "ckpt" / "last.ckpt"))
+    resumed = fit_pix2vox(tiny_dataset, run, epochs=4, ckpt_path=str(run / "ckpt" / "last.ckpt"))
     registry = resumed.datamodule.generated_samples
-    assert [s["epoch"] for s in registry] == [-1] * 3 + [0] * 3 + [1] * 3
+    assert [s["epoch"] for s in registry] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
     # every sample reported written is in the registry, under its directory, with the same files
     for reported in done:
         (entry,) = [e for e in registry if e["dir"] == reported["dir"]]
@@ -139,6 +139,6 @@ def test_a_kill_while_writing_samples_loses_nothing(tiny_dataset, tmp_path):
     assert not any(n.startswith(".") for e in registry for n in e["images"])
 
     # 3. the same samples, weights and optimizer state as a run nobody killed
-    full = fit_pix2vox(tiny_dataset, tmp_path / "full", epochs=3)
-    assert generated_index(run / "gen") == generated_index(tmp_path / "full" / "gen")
+    full, full_dir = pix2vox_run_4_epochs
+    assert generated_index(run / "gen") == generated_index(full_dir / "gen")
     assert_same_training_state(resumed, full)

@@ -11,8 +11,8 @@ _one_thread = pytest.fixture(autouse=True)(one_thread)
 
 
 @pytest.mark.slow
-def test_resume_restores_weights_and_optimizer_state(tiny_dataset, tmp_path):
-    full = fit_pix2vox(tiny_dataset, tmp_path / "full", epochs=4)
+def test_resume_restores_weights_and_optimizer_state(tiny_dataset, pix2vox_run_4_epochs, tmp_path):
+    full, _ = pix2vox_run_4_epochs  # fit_pix2vox(tiny_dataset, ..., epochs=4), shared with the kill test
     part = fit_pix2vox(tiny_dataset, tmp_path / "part", epochs=2)
     # the run ended on its last epoch, which generates nothing: the resume catches up the generation of epoch 1
     assert [s["epoch"] for s in part.datamodule.generated_samples] == [-1] * 3 + [0] * 3
