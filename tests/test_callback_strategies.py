@@ -144,11 +144,28 @@ def _fit(root, tmp_path, epochs, name, ckpt=None):
     return dm, callback, probe.sizes
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_dataset, tmp_path_factory):
+    """Selector name -> ``(run dir, _fit(..., 3 epochs, name))``: each uninterrupted 3-epoch run fitted once, read by
+    the resume test and, as its one-process reference, by the DDP test."""
+    runs = {}
+
+    def get(name):
+        if name not in runs:
+            root = tmp_path_factory.mktemp(f"uninterrupted_{name}")
+            runs[name] = (root, _fit(tiny_dataset, root, 3, name))
+        return runs[name]
+
+    return get
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SELECTORS))
-def test_resume_restores_the_selector_and_generates_what_an_uninterrupted_run_does(tiny_dataset, tmp_path, name):
+def test_resume_restores_the_selector_and_generates_what_an_uninterrupted_run_does(
+    tiny_dataset, tmp_path, uninterrupted, name
+):
     # Interrupted after epoch 0 (its last, which searches nothing); resumed to epoch 2, which searches after epoch 1.
-    full, full_cb, full_sizes = _fit(tiny_dataset, tmp_path / "full", 3, name)
+    full, full_cb, full_sizes = uninterrupted(name)[1]
     _, part_cb, part_sizes = _fit(tiny_dataset, tmp_path / "part", 1, name)
     ckpt = tmp_path / "part" / "ckpt" / "last.ckpt"
     # The selector's learned state is in the callback's checkpoint entry (saved after the search before epoch 0).
@@ -203,10 +220,10 @@ class SelectorStateProbe(L.Callback):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SELECTORS))
-def test_two_process_ddp_generates_and_learns_what_one_process_does(tiny_dataset, tmp_path, name):
-    single = tmp_path / "single"
-    callback = make_callback(selector=SELECTORS[name](), fraction=0.15)
-    make_trainer(single, 3, [callback]).fit(EmptyPredictionModel(), datamodule=make_datamodule(tiny_dataset, single))
+def test_two_process_ddp_generates_and_learns_what_one_process_does(tiny_dataset, tmp_path, uninterrupted, name):
+    # One process: the uninterrupted 3-epoch run of the resume test (the same callback arguments and model; its
+    # checkpoint and probe callbacks change nothing the selection sees).
+    single, (_, callback, _) = uninterrupted(name)
 
     ddp = tmp_path / "ddp"
     probe = SelectorStateProbe(str(tmp_path / "ddp_state.pt"))
