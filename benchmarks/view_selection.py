@@ -7,13 +7,26 @@ first-hit projection onto every candidate view, scores, bin choice and sampling)
 wrong in sparse blobs near the surface (1-5 % of the voxels), next to the per-object, per-view
 ``scipy.ndimage.rotate`` + scan that a direct port of the released code does (for the same score), timed
 on a few objects and extrapolated. The one-time build of the cached projection table is reported separately.
+
+``--baseline-rev REV`` (e.g. ``--baseline-rev 0a4ca47``) also times the package as it was at git revision
+``REV``: the revision is extracted with ``git archive`` into a temporary directory and the same timing runs
+there, in a subprocess with ``PYTHONPATH`` pointing at it; the working tree's package is timed the same way,
+in its own subprocess, alternating with the baseline (``--rounds`` times; the median of the rounds' medians
+is shown). Both sides get the same objects and generators, and the benchmark says whether their scores and
+selected views are exactly equal.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -97,19 +110,128 @@ def time_selector(
     predicted: torch.Tensor, target: torch.Tensor, k: int, score: str, repeats: int
 ) -> tuple[float, float, float]:
     """``(table build s, median obj/s, best obj/s)`` of ``ErrorGuidedSelector(k, score=score).select``."""
+    build, times, _ = _timed_selections(predicted, target, k, score, repeats)
+    return build, predicted.shape[0] / statistics.median(times), predicted.shape[0] / min(times)
+
+
+def _timed_selections(
+    predicted: torch.Tensor, target: torch.Tensor, k: int, score: str, repeats: int
+) -> tuple[float, list[float], dict[str, torch.Tensor]]:
+    """Table build s, the seconds of ``repeats`` selections (generator seeds ``0..repeats-1``), and the scores
+    and views of the first one (seed 0), for the exactness check against a baseline."""
     selector = ErrorGuidedSelector(k=k, score=score)
     categories = ["object"] * predicted.shape[0]
     clear_projection_cache()
     start = time.perf_counter()
     selector.select(predicted[:1], target[:1], categories[:1], generator=torch.Generator().manual_seed(0))
     build = time.perf_counter() - start
-    times = []
+    times, outputs = [], {}
     for r in range(repeats):
         gen = torch.Generator().manual_seed(r)
         start = time.perf_counter()
-        selector.select(predicted, target, categories, generator=gen)
+        views = selector.select(predicted, target, categories, generator=gen)
         times.append(time.perf_counter() - start)
-    return build, predicted.shape[0] / statistics.median(times), predicted.shape[0] / min(times)
+        if r == 0:
+            outputs = {"scores": selector.last_scores.clone(), "views": views.clone()}
+    return build, times, outputs
+
+
+# ------------------------------------------------------------------------------------ baseline A/B
+def _worker(args: argparse.Namespace) -> None:
+    """``--worker``: time one (score, K, threads) with whatever ``lightning_vtr`` is importable; print JSON."""
+    import lightning_vtr
+
+    torch.set_num_threads(args.worker_threads)
+    data = torch.load(args.worker_objects)
+    build, times, outputs = _timed_selections(
+        data["predicted"], data["target"], args.worker_k, args.worker_score, args.repeats
+    )
+    torch.save(outputs, args.worker_out)
+    print(json.dumps({"build": build, "times": times, "package": str(Path(lightning_vtr.__file__).parent)}))
+
+
+def _time_in_subprocess(
+    source_root: Path, objects: Path, out: Path, score: str, k: int, threads: int, repeats: int
+) -> dict:
+    """Run :func:`_worker` in a fresh interpreter that imports ``lightning_vtr`` from ``source_root``."""
+    env = dict(os.environ, PYTHONPATH=str(source_root))
+    command = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--worker",
+        "--worker-objects",
+        str(objects),
+        "--worker-out",
+        str(out),
+        "--worker-score",
+        score,
+        "--worker-k",
+        str(k),
+        "--worker-threads",
+        str(threads),
+        "--repeats",
+        str(repeats),
+    ]
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"benchmark worker failed ({source_root}):\n{done.stderr[-3000:]}")
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    expected = (source_root / "lightning_vtr").resolve()
+    if Path(result["package"]).resolve() != expected:  # PYTHONPATH must win over the editable install
+        raise RuntimeError(f"worker imported {result['package']}, expected {expected}")
+    return result
+
+
+def _extract_revision(rev: str, into: Path) -> str:
+    """``git archive`` revision ``rev`` of this repository into ``into``; returns its short hash."""
+    repo = Path(__file__).resolve().parents[1]
+    short = subprocess.run(
+        ["git", "-C", str(repo), "rev-parse", "--short", rev], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    archive = subprocess.run(["git", "-C", str(repo), "archive", "--format=tar", rev], capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive.stdout, check=True)
+    return short
+
+
+def compare_with_baseline(args: argparse.Namespace, predicted: torch.Tensor, target: torch.Tensor) -> None:
+    """Time the working tree and revision ``args.baseline_rev`` side by side, alternating, in subprocesses."""
+    repo = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory(prefix="view_selection_") as tmp:
+        tmp = Path(tmp)
+        baseline_root = tmp / "baseline"
+        baseline_root.mkdir()
+        short = _extract_revision(args.baseline_rev, baseline_root)
+        objects = tmp / "objects.pt"
+        torch.save({"predicted": predicted, "target": target}, objects)
+        print(f"baseline: revision {short} (git archive into a temporary directory), ours: the working tree {repo}")
+        print(
+            f"{'score':>8} {'K':>3} {'views':>5} {'threads':>7} {'baseline obj/s':>15} {'ours obj/s':>11} "
+            f"{'speed-up':>8} {'ours (best)':>11} {'identical':>9}"
+        )
+        for score, k in (("paper", 30), ("released", 30), ("visible", 30), ("paper", 15)):
+            num_views = (180 // k) * (360 // k)
+            for threads in args.threads:
+                rates: dict[str, list[float]] = {"ours": [], "baseline": []}
+                best: dict[str, float] = {"ours": 0.0, "baseline": 0.0}
+                for round_ in range(args.rounds):
+                    # alternate which side goes first, so a slow spell on the machine does not favour one
+                    order = [("ours", repo), ("baseline", baseline_root)]
+                    for side, root in order if round_ % 2 == 0 else order[::-1]:
+                        result = _time_in_subprocess(root, objects, tmp / f"{side}.pt", score, k, threads, args.repeats)
+                        rates[side].append(predicted.shape[0] / statistics.median(result["times"]))
+                        best[side] = max(best[side], predicted.shape[0] / min(result["times"]))
+                ours, baseline = statistics.median(rates["ours"]), statistics.median(rates["baseline"])
+                ours_out, baseline_out = torch.load(tmp / "ours.pt"), torch.load(tmp / "baseline.pt")
+                identical = all(torch.equal(ours_out[key], baseline_out[key]) for key in ("scores", "views"))
+                print(
+                    f"{score:>8} {k:>3} {num_views:>5} {threads:>7} {baseline:>15.0f} {ours:>11.0f} "
+                    f"{ours / baseline:>7.2f}x {best['ours']:>11.0f} {'yes' if identical else 'NO':>9}",
+                    flush=True,
+                )
+        print(
+            f"obj/s: median over {args.repeats} selections of the whole batch (table cached), median over "
+            f"{args.rounds} alternating rounds; identical: scores and views of the seed-0 selection, torch.equal"
+        )
 
 
 def main() -> None:
@@ -119,7 +241,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--reference-objects", type=int, default=2)
     parser.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch thread counts to time")
+    parser.add_argument(
+        "--baseline-rev",
+        default=None,
+        help="also time this git revision of the package (e.g. 0a4ca47), side by side with the working tree",
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per side with --baseline-rev")
+    # internal: one timing in a subprocess (see --baseline-rev)
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-objects", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-out", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-score", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-k", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-threads", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.worker:
+        _worker(args)
+        return
 
     predicted, target, fractions = make_objects(args.batch, args.resolution)
     print(
@@ -127,6 +265,9 @@ def main() -> None:
         f"{100 * fractions.max():.1f} % (mean {100 * fractions.mean():.1f} %)",
         flush=True,
     )
+    if args.baseline_rev is not None:
+        compare_with_baseline(args, predicted, target)
+        return
     print(
         f"{'score':>8} {'K':>3} {'views':>5} {'threads':>7} {'table build s':>13} {'ours obj/s (best)':>18} "
         f"{'reference obj/s':>16} {'speed-up':>9}"

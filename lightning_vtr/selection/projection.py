@@ -18,22 +18,23 @@ no voxel leaves the image from any viewpoint and a solid's projection has no hol
 
 The implementation is sparse: for a given grid size and set of viewpoints it precomputes (once, cached)
 the pixel of every voxel centre and its depth rank in every view. Per call it takes only the voxels above
-``eps``, looks up their pixels and ranks, keeps the smallest rank per ``(object, view, pixel)`` with a
-``scatter_reduce(..., "amin")`` (the rank encodes depth and the tie break in one sortable integer), and
-sums (``embedding_bag``) or gathers the values of the winning voxels.
+``eps``, looks up their pixels and ranks, keeps the smallest rank per ``(object, view, pixel)`` with one
+``scatter_reduce(..., "amin")`` for all views (the rank encodes depth and the tie break in one sortable
+integer), and sums (``embedding_bag``) or gathers the values of the winning voxels. A view's pixels are
+numbered in the buffer only if some voxel centre falls in them (about half of them), in pixel order, so
+per-view sums add the same values in the same order as over the whole image: the scores are bit-exact.
 
 Occluded voxels are left out before the scatter. The views are grouped by the octant their cameras look
-from; a voxel whose 2x2x2 block towards that octant is full is skipped for the group's views when the
-table found, for every one of them, a voxel of that block in the same pixel with a smaller rank (true of
-every voxel off the grid's front faces for the candidate views). That changes no first hit, and keeps
-about a quarter of a solid's (voxel, view) pairs.
+from, and a voxel is skipped for a group's views when occupied voxels of its 2x2x2 block towards that
+octant hide it in every one of them (the table keeps, per voxel and group, a smallest set of block voxels
+that does: one falls in the same pixel with a smaller rank in each view). That changes no first hit, and on
+the benchmark's objects keeps about a sixth of a surface's (voxel, view) pairs.
 """
 
 from __future__ import annotations
 
 import itertools
 from collections import OrderedDict
-from collections.abc import Callable
 from typing import Literal, NamedTuple
 
 import torch
@@ -73,14 +74,11 @@ _TABLE_CACHE_SIZE = 6
 #: Views processed together while building a table, to bound the float64 temporaries.
 _TABLE_VIEW_CHUNK = 16
 #: Occupied (voxel, view) pairs per chunk of objects in the score functions, before culling: bounds the
-#: index buffers (tens of MB). The scatter writes one view group's (B, V / 8, S^2 + 1) buffer at a time, which
-#: stays in cache, so chunks can be big: on 2 cores, 64 objects at R = 32, K = 30 (about 2^24 pairs) scored
-#: fastest in chunks of 2^24 to 2^25 pairs, ~20 % faster than in chunks of 2^22.
-_SCORE_CHUNK_PAIRS = 1 << 25
-#: The per-group culling runs when the full 2x2x2 blocks number more than this share of the occupied voxels
-#: (each block culls at most one voxel per group). On the benchmark's objects it paid for the "visible"
-#: surfaces (0.75 blocks per voxel, 1.2x faster) and cost the "paper" score's error blobs (0.36, 0.9x).
-_CULL_MIN_SHARE = 0.5
+#: index buffers (culling keeps about a sixth to a half of them, at 12 bytes each). On 2 cores, 64 objects at
+#: R = 32, K = 30 (2^22 to 2^24 pairs) scored as fast in chunks of 2^22 to 2^25 pairs.
+_SCORE_CHUNK_PAIRS = 1 << 24
+#: Buffer slots (objects x views x slots per view) per chunk of objects: at most 64 MB of int32 keys.
+_SCORE_CHUNK_SLOTS = 1 << 24
 
 _table_cache: OrderedDict[tuple, _Table] = OrderedDict()
 
@@ -195,13 +193,14 @@ class _ViewGroup(NamedTuple):
 
     ``occludable[n]`` says that voxel ``n`` is never a first hit in these views while the 2x2x2 block
     made of it and its 7 neighbours one step towards the cameras is occupied: in every view of the group
-    one of those neighbours falls in the same pixel with a smaller key. The scatter leaves such voxels out.
-    That changes no first hit: from a left-out voxel, "a smaller key in the same pixel" leads through
-    strictly smaller keys to a voxel that was kept.
+    one of those neighbours falls in the same pixel with a smaller key. Leaving such voxels out of the
+    scatter changes no first hit: from a left-out voxel, "a smaller key in the same pixel" leads through
+    strictly smaller keys to a voxel that was kept. (:func:`_first_hits` uses a finer test of the same kind,
+    the table's hiding sets, and ``occludable`` for the voxels deep inside a solid.)
     """
 
     views: Tensor  # (Vg,) int64: the group's views in the viewpoint order
-    slot: Tensor  # (N, Vg) scatter slots: v * (S^2 + 1) + pixel, v numbering the group's views
+    slot: Tensor  # (N, Vg) int64 buffer slots: c * S + the slot of the voxel's pixel, c the view's buffer column
     key: Tensor  # (N, Vg) first-hit keys
     flag_key: Tensor  # (N, Vg) the keys' ranks, doubled: room for a flag bit (see _first_hits)
     occludable: Tensor  # (N,) bool
@@ -209,9 +208,29 @@ class _ViewGroup(NamedTuple):
 
 
 class _Table(NamedTuple):
+    """The projection of every voxel centre onto every view, split into :class:`_ViewGroup` s by camera octant.
+
+    The first hits of a chunk of ``b`` objects go to one ``(b, V, S)`` buffer: a column per view, the
+    groups' views one group after the other (``column_of_view`` says where a view is), and ``S`` slots per
+    column. The slots are the view's *used* pixels only (those some voxel centre falls in), in pixel order:
+    about half the image's, so every pass over the buffer is half as long as over ``S^2`` pixels, and a
+    per-view sum over the slots adds the same values in the same order as one over the pixels. A table with
+    centres outside the image (small images only) has one more slot per column, a sink reset to a miss.
+    """
+
     groups: list[_ViewGroup]
+    slot: Tensor  # (G, N, W) int64: the groups' slots (_ViewGroup.slot), padded to W by repeating the first view
+    key: Tensor  # (G, N, W) the groups' keys, padded alike
+    flag_key: Tensor  # (G, N, W) the groups' flag keys, padded alike
     block_index: Tensor  # (N,) int64: voxel (i, j, k) at (i, j, k) of an (R + 1)^3 grid
     occludable: Tensor  # (N,) bool: occludable in every group
+    hiding: Tensor  # (N,) int64: per voxel, 8 bytes of block-code bits, one per group (see _first_hits)
+    not_own: Tensor  # (G, 1) uint8: the block code bits of the other voxels than the voxel itself
+    block_offsets: Tensor  # (G, 1) int64: each group's block offset
+    column_of_view: Tensor  # (V,) int64: the buffer column of each view
+    pixel_of: Tensor  # (V, S) int64: the image pixel of each slot of a column, S^2 for unused slots and the sink
+    stride: int  # S
+    sink: bool  # whether slot S - 1 of each column collects the centres outside the image
 
 
 def _key_bits(n_vox: int) -> int:
@@ -228,8 +247,14 @@ def _missed_key(n_vox: int) -> int:
     return ((n_vox - 1) << _key_bits(n_vox)) | n_vox
 
 
-def _view_groups(slot: Tensor, key: Tensor, resolution: int, viewpoints: Tensor, pixels: int) -> list[_ViewGroup]:
-    """Split the ``(N, V)`` pixel and key table by the octant the cameras look from; find the occludable voxels."""
+def _view_groups(
+    slot: Tensor, key: Tensor, resolution: int, viewpoints: Tensor
+) -> list[tuple[Tensor, Tensor, Tensor, int, int]]:
+    """Split the ``(N, V)`` pixel and key table by the octant the cameras look from.
+
+    Per group: its views, its occludable voxels (see :class:`_ViewGroup`), each voxel's hiding set and own bit
+    of the block code (see :func:`_first_hits`), and its block offset.
+    """
     centres = voxel_centers(max(resolution, 2), torch.float64)
     points = torch.stack([centres[0, 0, 0], centres[1, 0, 0], centres[0, 1, 0], centres[0, 0, 1]])
     depth = orthographic_pixel_coords(points, viewpoints, 1, 1.0)[..., 2]  # (V, 4)
@@ -243,36 +268,53 @@ def _view_groups(slot: Tensor, key: Tensor, resolution: int, viewpoints: Tensor,
     ijk = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     strides = torch.tensor([resolution * resolution, resolution, 1])
     padded_strides = torch.tensor([(resolution + 1) ** 2, resolution + 1, 1])
+    # covers[d, c]: whether block code c has a bit in common with mask d
+    codes = torch.arange(256)
+    covers = (codes[:, None] & codes) != 0
+    bit_count = sum((codes >> bit) & 1 for bit in range(8))
     groups = []
     for steps, views in by_steps.items():
         columns = torch.tensor(views)
-        group_slot = slot[:, columns] + torch.arange(len(views)) * (pixels + 1)
-        group_key = key[:, columns].contiguous()
-        hidden = torch.zeros(group_slot.shape, dtype=torch.bool)
+        group_slot, group_key = slot[:, columns], key[:, columns]
+        up = [int(step > 0) for step in steps]
+        # hides[n, w]: which voxels of n's block towards the cameras hide it in view w (same pixel, smaller
+        # key), as bits of the block code (bit 4 e_x + 2 e_y + e_z for the block voxel at offset e - 1 + up)
+        hides = torch.zeros(group_slot.shape, dtype=torch.int64)
         for offset in itertools.product(*[(0, step) for step in steps]):
             if not any(offset):
                 continue
             moved = ijk + torch.tensor(offset)
             inside = ((moved >= 0) & (moved < resolution)).all(-1, keepdim=True)
             index = (moved.clamp(0, resolution - 1) * strides).sum(-1)
-            hidden |= (group_slot[index] == group_slot) & (group_key[index] < group_key) & inside
+            hidden = (group_slot[index] == group_slot) & (group_key[index] < group_key) & inside
+            e = [o - u + 1 for o, u in zip(offset, up)]
+            hides |= hidden.long() << (4 * e[0] + 2 * e[1] + e[2])
+        # A voxel is hidden in every view of the group if its block's occupied voxels (code c) include one that
+        # hides it in each view: c & hides[:, w] != 0 for every w. The table keeps one smallest such set
+        # (`hiding`): an occupied `hiding` proves the voxel hidden. Among the smallest, face neighbours first
+        # (more often occupied on a surface than edge or corner ones). Without any, it keeps the voxel's own bit,
+        # which the lookup clears from the code: never all set.
+        hit = covers[hides[:, 0]]
+        for w in range(1, len(views)):
+            hit &= covers[hides[:, w]]
+        own = 4 * (1 - up[0]) + 2 * (1 - up[1]) + (1 - up[2])
+        distance = sum(((codes >> bit) & 1) * bin(bit ^ own).count("1") for bit in range(8))
+        cost = torch.where(hit, bit_count * 64 + distance, 1 << 20)
+        hiding = torch.where(hit.any(1), cost.argmin(1), 1 << own)
         block_offset = int((padded_strides * (torch.tensor(steps) > 0)).sum())
-        flag_key = (group_key >> _key_bits(resolution**3)) << 1
-        groups.append(_ViewGroup(columns, group_slot, group_key, flag_key, hidden.all(1), block_offset))
+        groups.append((columns, (hides != 0).all(1), hiding, own, block_offset))
     return groups
 
 
 def _projection_table(
     resolution: int, viewpoints: Tensor, image_size: int, half_extent: float, device: torch.device
 ) -> _Table:
-    """Per voxel and view: the scatter slot and the sortable first-hit key (cached per argument set).
+    """Per voxel and view: the buffer slot and the sortable first-hit key (cached per argument set).
 
-    ``slot``: ``v * (S^2 + 1) + row * S + col``, or ``v * (S^2 + 1) + S^2`` (a discarded slot) for a
-    centre outside the image, ``v`` numbering the views of a group. ``key``: ``(rank << b) | n`` with ``b =`` :func:`_key_bits` ``(N)``, where
-    ``rank`` is the position of voxel ``n`` in the view's (depth, flat index) order, so the smallest key in
-    a pixel is its first hit and the low ``b`` bits name the voxel. Both int32 where they fit. The table is
-    voxel-major, so a call gathers whole contiguous rows for its occupied voxels, and split into
-    :class:`_ViewGroup` s by camera octant.
+    ``key``: ``(rank << b) | n`` with ``b =`` :func:`_key_bits` ``(N)``, where ``rank`` is the position of
+    voxel ``n`` in the view's (depth, flat index) order, so the smallest key in a pixel is its first hit
+    and the low ``b`` bits name the voxel; int32 where it fits. The tables are ``(group, voxel, view)``, so a
+    call gathers contiguous rows, group after group; see :class:`_Table` for the buffer layout.
     """
     vp64 = viewpoints.detach().to("cpu", torch.float64)
     cache_key = (resolution, image_size, float(half_extent), str(device), tuple(vp64.flatten().tolist()))
@@ -281,15 +323,14 @@ def _projection_table(
         return _table_cache[cache_key]
 
     n_vox = resolution**3
+    n_views = vp64.shape[0]
     pixels = image_size * image_size
     bits = _key_bits(n_vox)
     int32_max = torch.iinfo(torch.int32).max
-    key_dtype = torch.int32 if _missed_key(n_vox) <= int32_max else torch.int64
-    slot_dtype = torch.int32 if vp64.shape[0] * (pixels + 1) <= int32_max else torch.int64
     centres = voxel_centers(resolution, torch.float64).reshape(-1, 3)
     flat = torch.arange(n_vox, dtype=torch.int64)
     slots, keys = [], []
-    for start in range(0, vp64.shape[0], _TABLE_VIEW_CHUNK):
+    for start in range(0, n_views, _TABLE_VIEW_CHUNK):
         chunk = vp64[start : start + _TABLE_VIEW_CHUNK]
         coords = orthographic_pixel_coords(centres, chunk, image_size, half_extent)  # (v, N, 3)
         row, col, depth = coords.unbind(-1)
@@ -305,22 +346,69 @@ def _projection_table(
         order = torch.argsort(group * n_vox + flat, dim=-1)
         rank = torch.empty_like(order).scatter_(-1, order, flat.expand_as(order).contiguous())
         keys.append((rank << bits) | flat)
-    slot, key = torch.cat(slots).t().contiguous(), torch.cat(keys).t().contiguous()
-    groups = [
+    pixel, key = torch.cat(slots), torch.cat(keys).t().contiguous()  # (V, N) pixels, (N, V) keys
+    groups = _view_groups(pixel.t(), key, resolution, vp64)
+
+    # Each view's used pixels, numbered in pixel order; the centres outside the image (pixel S^2) go to the sink.
+    used = torch.zeros(n_views, pixels + 1, dtype=torch.bool).scatter_(1, pixel, True)
+    sink = bool(used[:, pixels].any())
+    used = used[:, :pixels]
+    stride = int(used.sum(1).max()) + sink
+    numbering = torch.cat([used.long().cumsum(1) - 1, torch.full((n_views, 1), stride - 1)], 1)
+    compact = numbering.gather(1, pixel).t()  # (N, V)
+    # The buffer's columns: the groups' views, group after group.
+    column_views = torch.cat([group[0] for group in groups])
+    column_of_view = torch.empty(n_views, dtype=torch.int64)
+    column_of_view[column_views] = torch.arange(n_views)
+    # unused slots (and the sink) map to pixel S^2, which error_projection drops
+    pixel_of = torch.full((n_views, stride), pixels, dtype=torch.int64)
+    where = used.nonzero()
+    pixel_of[where[:, 0], numbering[:, :pixels][used]] = where[:, 1]
+    key_dtype = torch.int32 if _missed_key(n_vox) <= int32_max else torch.int64
+    flag_dtype = torch.int32 if 2 * n_vox < int32_max else torch.int64
+    # Group-major tables (G, N, W), each group padded to the widest by repeating its first view's column: a
+    # repeated (slot, key) pair changes no minimum, and a group's rows are one contiguous block to gather from.
+    width = max(len(group[0]) for group in groups)
+    padded = torch.stack([torch.cat([group[0], group[0][:1].expand(width - len(group[0]))]) for group in groups])
+    slot = (compact[:, padded] + column_of_view[padded] * stride).permute(1, 0, 2).contiguous()
+    group_key = key[:, padded].permute(1, 0, 2).contiguous()
+    slot, group_key = slot.to(device), group_key.to(device=device, dtype=key_dtype)
+    flag_key = ((group_key >> bits) << 1).to(flag_dtype)
+    view_groups = [
         _ViewGroup(
-            group.views.to(device),
-            group.slot.to(device=device, dtype=slot_dtype),
-            group.key.to(device=device, dtype=key_dtype),
-            group.flag_key.to(device=device, dtype=torch.int32 if 2 * n_vox < int32_max else torch.int64),
-            group.occludable.to(device),
-            group.block_offset,
+            views.to(device),
+            slot[g, :, : len(views)],
+            group_key[g, :, : len(views)],
+            flag_key[g, :, : len(views)],
+            occludable.to(device),
+            block_offset,
         )
-        for group in _view_groups(slot, key, resolution, vp64, pixels)
+        for g, (views, occludable, _, _, block_offset) in enumerate(groups)
     ]
     axis = torch.arange(resolution, device=device)
     block_index = (axis[:, None, None] * (resolution + 1) + axis[:, None]) * (resolution + 1) + axis
-    occludable = torch.stack([group.occludable for group in groups]).all(0)
-    table = _Table(groups, block_index.reshape(-1), occludable)
+    table = _Table(
+        groups=view_groups,
+        slot=slot,
+        key=group_key,
+        flag_key=flag_key,
+        block_index=block_index.reshape(-1),
+        occludable=torch.stack([group.occludable for group in view_groups]).all(0),
+        # (N, 8) uint8, one column per group (8 octants at most), viewed as one int64 per voxel: one 1-d gather
+        hiding=torch.cat(
+            [torch.stack([group[2] for group in groups], 1), torch.zeros(n_vox, 8 - len(groups), dtype=torch.int64)], 1
+        )
+        .to(torch.uint8)
+        .view(torch.int64)
+        .view(-1)
+        .to(device),
+        not_own=torch.tensor([[255 - (1 << group[3])] for group in groups], dtype=torch.uint8, device=device),
+        block_offsets=torch.tensor([[group.block_offset] for group in view_groups], device=device),
+        column_of_view=column_of_view.to(device),
+        pixel_of=pixel_of.to(device),
+        stride=stride,
+        sink=sink,
+    )
     _table_cache[cache_key] = table
     while len(_table_cache) > _TABLE_CACHE_SIZE:
         _table_cache.popitem(last=False)
@@ -340,85 +428,112 @@ def _all_of_2x2x2(grid: Tensor) -> Tensor:
     return grid[:, :, :, 1:] & grid[:, :, :, :-1]
 
 
-def _full_blocks(grid: Tensor) -> Tensor:
-    """``(B, (R + 1)^3)`` bool: entry ``(i, j, k)`` says voxels ``(i - 1 .. i, j - 1 .. j, k - 1 .. k)`` are all occupied.
+def _block_codes(grid: Tensor) -> Tensor:
+    """``(B, (R + 1)^3)`` uint8 codes of the 2x2x2 blocks of a ``(B, R, R, R)`` bool grid, zero-padded.
 
-    Zero on the border, so the block towards the cameras of voxel ``n`` is entry ``n + (steps > 0)``.
+    Entry ``(i, j, k)`` covers voxels ``(i - 1 .. i, j - 1 .. j, k - 1 .. k)``: bit ``4 e_x + 2 e_y + e_z`` is
+    voxel ``(i - 1 + e_x, j - 1 + e_y, k - 1 + e_z)``, so 255 is a full block. The block towards the cameras of
+    voxel ``n`` is entry ``n + (steps > 0)``.
     """
     batch, resolution = grid.shape[0], grid.shape[1]
-    padded = grid.new_zeros(batch, resolution + 1, resolution + 1, resolution + 1)
-    padded[:, 1:resolution, 1:resolution, 1:resolution] = _all_of_2x2x2(grid)
-    return padded.view(batch, -1)
+    padded = grid.new_zeros(batch, resolution + 2, resolution + 2, resolution + 2, dtype=torch.uint8)
+    padded[:, 1:-1, 1:-1, 1:-1] = grid
+    # one axis at a time, the upper neighbour's bits shifted above the lower one's (disjoint bits: add = or)
+    codes = torch.add(padded[..., :-1], padded[..., 1:], alpha=2)
+    codes = torch.add(codes[:, :, :-1], codes[:, :, 1:], alpha=4)
+    return torch.add(codes[:, :-1], codes[:, 1:], alpha=16).view(batch, -1)
+
+
+def _flat_nonzero(mask: Tensor) -> Tensor:
+    """``torch.nonzero(mask).squeeze(1)`` of a 1-d bool tensor, faster where it is sparse (a surface in a grid).
+
+    CPU ``nonzero`` costs per element scanned: scan it as int64 words of 8 flags first, then only the flags of
+    the nonzero words.
+    """
+    if mask.device.type != "cpu" or mask.numel() % 8 or mask.storage_offset() % 8:
+        return torch.nonzero(mask).squeeze(1)
+    words = torch.nonzero(mask.view(torch.int64)).squeeze(1)
+    flags = torch.nonzero(mask.view(-1, 8).index_select(0, words).view(-1)).squeeze(1)
+    return words.mul_(8).index_select(0, flags >> 3).add_(flags & 7)
 
 
 def _first_hits(
-    occupied: Tensor,
-    resolution: int,
-    viewpoints: Tensor,
-    image_size: int,
-    half_extent: float,
-    consume: Callable[[Tensor, Tensor], None],
-    flags: Tensor | None = None,
-) -> None:
-    """Smallest first-hit key per ``(object, view, pixel)`` for ``occupied (B, N)`` bool voxels, group by group.
+    occupied: Tensor, resolution: int, table: _Table, flags: Tensor | None = None, *, hits_only: bool = False
+) -> Tensor:
+    """Smallest first-hit key per ``(object, column, slot)`` for ``occupied (B, N)`` bool voxels: ``(B, V, S)``.
 
-    Calls ``consume(views, keys)`` once per :class:`_ViewGroup`, with the group's view numbers ``(Vg,)`` and
-    its ``(B, Vg, S^2 + 1)`` keys: :func:`_missed_key` where nothing is hit (the last pixel of each view
-    collects centres outside the image and is reset to a miss); ``consume`` may overwrite the keys. A
-    group's buffer is an eighth of all the views' and stays in cache while the scatter writes it.
+    :func:`_missed_key` where nothing is hit; see :class:`_Table` for the layout. One gather, one add and one
+    scatter serve all views: few, large tensor operations, in a (group, object, voxel) order that reads
+    each group's rows of the table and writes its columns of the buffer together.
 
-    With ``flags`` (``(B, N)`` bool) the keys are ``(rank << 1) | flag``: bit 0 of a pixel's key is the flag
+    With ``flags`` (``(B, N)`` bool) the keys are ``(rank << 1) | flag``: bit 0 of a slot's key is the flag
     of its first hit (no gather needed to read it), a miss is ``2 N`` (bit 0 clear), and the voxel index is
-    not kept.
+    not kept. With ``hits_only`` the buffer is uint8, 1 where anything is hit: which voxel is first does not
+    matter then, so no key is gathered.
     """
     batch = occupied.shape[0]
-    pixels = image_size * image_size
-    table = _projection_table(resolution, viewpoints, image_size, half_extent, occupied.device)
     n_vox = resolution**3
-    missed = _missed_key(n_vox) if flags is None else 2 * n_vox
-    blocks = _full_blocks(occupied.view(batch, resolution, resolution, resolution))
+    per_object = table.column_of_view.numel() * table.stride
+    codes = _block_codes(occupied.view(batch, resolution, resolution, resolution))
     # A voxel whose 3x3x3 neighbourhood is full (its 8 blocks are) is culled in every group: leave it out now.
-    deep = _all_of_2x2x2(blocks.view(batch, resolution + 1, resolution + 1, resolution + 1))
+    deep = _all_of_2x2x2((codes == 255).view(batch, resolution + 1, resolution + 1, resolution + 1))
     deep = deep.reshape(batch, -1).logical_and_(table.occludable)
     # one flat nonzero is cheaper than a 2-d one; split it into (object, voxel) arithmetically
-    flat_ids = torch.nonzero(occupied.reshape(batch, -1).logical_and(deep.logical_not_()).view(-1)).squeeze(1)
+    flat_ids = _flat_nonzero(occupied.reshape(batch, -1).logical_and(deep.logical_not_()).view(-1))
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
     flag_bits = None if flags is None else flags.reshape(-1).index_select(0, flat_ids)
-    blocks = blocks.view(-1)
-    # A full block culls one voxel per group: with few of them (sparse errors) the culling costs more than it saves.
-    cull = int(torch.count_nonzero(blocks)) > _CULL_MIN_SHARE * flat_ids.numel()
-    block_at = table.block_index.index_select(0, vox).add_(obj * (resolution + 1) ** 3) if cull else None
-
-    for group in table.groups:
-        if cull:
-            hidden = blocks.index_select(0, block_at + group.block_offset)
-            hidden.logical_and_(group.occludable.index_select(0, vox))
-            kept = torch.nonzero(hidden.logical_not_()).squeeze(1)
-            voxels, objects = vox.index_select(0, kept), obj.index_select(0, kept)
-        else:
-            kept, voxels, objects = None, vox, obj
-        stride = group.slot.shape[1] * (pixels + 1)
-        # int32 indices on CPU, where scatter_reduce takes them and they fit (they halve the index traffic)
-        index = group.slot.index_select(0, voxels)
-        if index.device.type != "cpu" or batch * stride > torch.iinfo(index.dtype).max:
-            index = index.long()
-        index.add_((objects * stride).to(index.dtype)[:, None])
+    # int64 buffer indices (and slots): scatter_reduce would convert int32 ones, a pass over every pair
+    base = obj * per_object
+    if hits_only:
+        best = torch.zeros(batch * per_object, dtype=torch.uint8, device=obj.device)
+        missed = 0
+    else:
+        key_dtype = table.key.dtype if flags is None else table.flag_key.dtype
+        missed = _missed_key(n_vox) if flags is None else 2 * n_vox
+        best = torch.full((batch * per_object,), missed, dtype=key_dtype, device=obj.device)
+    # (group, voxel) pairs, found for all groups at once. A voxel is hidden in all views of a group when the
+    # occupied voxels of its block towards the cameras (the block code, less its own bit) include its hiding
+    # set from the table: then in each view one of them falls in the same pixel with a smaller key.
+    n_groups = len(table.groups)
+    block_at = table.block_index.index_select(0, vox).add_(obj * (resolution + 1) ** 3)
+    code = codes.view(-1).index_select(0, (table.block_offsets + block_at).view(-1)).view(n_groups, -1)
+    code.bitwise_and_(table.not_own)
+    # the table's 8 bytes per voxel (one per group) come in one int64 gather
+    hiding = table.hiding.index_select(0, vox).view(torch.uint8).view(-1, 8)[:, :n_groups].t()
+    kept = code.bitwise_and_(hiding) != hiding
+    counts = kept.sum(1).tolist()
+    # Group-major positions in the (G, M) grid: group g's slice, minus g * M, are positions in `vox`, and its
+    # table rows are g * N + voxel. Gathering group after group keeps each group's rows together in cache.
+    kept = torch.nonzero(kept.view(-1)).squeeze(1)
+    for g, part in enumerate(kept.split(counts)):
+        part.sub_(g * vox.numel())
+    rows = vox.index_select(0, kept)
+    for g, part in enumerate(rows.split(counts)):
+        part.add_(g * n_vox)
+    width = table.slot.shape[-1]
+    index = table.slot.view(-1, width).index_select(0, rows).add_(base.index_select(0, kept)[:, None]).view(-1)
+    if hits_only:
+        best.scatter_reduce_(0, index, best.new_ones(index.numel()), reduce="amax")
+    else:
         if flag_bits is None:
-            keys = group.key.index_select(0, voxels)
+            keys = table.key.view(-1, width).index_select(0, rows)
         else:
-            keys = group.flag_key.index_select(0, voxels)
-            keys.bitwise_or_((flag_bits if kept is None else flag_bits.index_select(0, kept)).to(keys.dtype)[:, None])
-        best = torch.full((batch, group.slot.shape[1], pixels + 1), missed, dtype=keys.dtype, device=obj.device)
-        best.view(-1).scatter_reduce_(0, index.view(-1), keys.view(-1), reduce="amin")
-        best[..., pixels] = missed
-        consume(group.views, best)
+            keys = table.flag_key.view(-1, width).index_select(0, rows)
+            keys.bitwise_or_(flag_bits.index_select(0, kept).to(keys.dtype)[:, None])
+        best.scatter_reduce_(0, index, keys.view(-1), reduce="amin")
+    best = best.view(batch, -1, table.stride)
+    if table.sink:
+        best[..., -1] = missed
+    return best
 
 
-def _object_chunks(occupied: Tensor, num_views: int) -> list[slice]:
-    """Consecutive slices of the ``(B, N)`` batch, each scattering about :data:`_SCORE_CHUNK_PAIRS` pairs."""
+def _object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> list[slice]:
+    """Consecutive slices of the ``(B, N)`` batch, each scattering about :data:`_SCORE_CHUNK_PAIRS` pairs into
+    at most :data:`_SCORE_CHUNK_SLOTS` slots."""
     chunks, start, pairs = [], 0, 0
+    max_objects = max(1, _SCORE_CHUNK_SLOTS // slots_per_object)
     for index, count in enumerate((occupied.sum(1, dtype=torch.int32).long() * num_views).tolist()):
-        if pairs and pairs + count > _SCORE_CHUNK_PAIRS:
+        if pairs and (pairs + count > _SCORE_CHUNK_PAIRS or index - start >= max_objects):
             chunks.append(slice(start, index))
             start, pairs = index, 0
         pairs += count
@@ -427,27 +542,34 @@ def _object_chunks(occupied: Tensor, num_views: int) -> list[slice]:
 
 
 def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
-    """Values of the winning voxels of ``best (B, V, P)`` keys in ``flat (B, N)``; 0 where nothing is hit."""
+    """Values of the winning voxels of ``best (B, C, S)`` keys in ``flat (B, N)``; 0 where nothing is hit."""
     winner = best.long().bitwise_and_((1 << _key_bits(flat.shape[1])) - 1).view(best.shape[0], -1)
     padded = torch.cat([flat, flat.new_zeros(flat.shape[0], 1)], 1)  # voxel N: the value of a miss
     return torch.gather(padded, 1, winner).view_as(best)
 
 
-def _value_rows(flat: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
     """``(B * (N + 1), 1)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
-    In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32.
+    In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32. With ``counts`` the
+    rows have a second column, 1 for a voxel and 0 for the miss: the same sum then also counts the hits.
     """
     dtype = flat.dtype if dtype is None else dtype
     dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
-    return torch.cat([flat.to(dtype), flat.new_zeros(flat.shape[0], 1, dtype=dtype)], 1).view(-1, 1)
+    rows = flat.new_empty(flat.shape[0], flat.shape[1] + 1, 2 if counts else 1, dtype=dtype)
+    rows[:, :-1, 0] = flat
+    if counts:
+        rows[:, :-1, 1] = 1
+    rows[:, -1] = 0
+    return rows.view(-1, rows.shape[-1])
 
 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
-    """``(B, V)`` sums over pixels of the values (:func:`_value_rows`) of the voxels that ``best (B, V, P)`` hit.
+    """``(B, C, k)`` sums over slots of the ``k``-column rows (:func:`_value_rows`) of the voxels ``best (B, C, S)`` hit.
 
     The keys are turned into row numbers in place (``best`` is overwritten); one ``embedding_bag`` gathers and
-    sums, without a ``(B, V, P)`` tensor of values.
+    sums, without a ``(B, C, S)`` tensor of values. It adds a bag's values one after the other in slot order,
+    so the sums do not depend on the thread count.
     """
     batch = best.shape[0]
     per_object = rows.shape[0] // batch
@@ -456,7 +578,7 @@ def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
     best.bitwise_and_((1 << _key_bits(per_object - 1)) - 1)
     best.add_(torch.arange(0, rows.shape[0], per_object, dtype=best.dtype, device=best.device).view(-1, 1, 1))
     sums = torch.nn.functional.embedding_bag(best.view(-1, best.shape[-1]), rows, mode="sum")
-    return sums.view(batch, best.shape[1])
+    return sums.view(batch, best.shape[1], rows.shape[1])
 
 
 def _is_binary(flat: Tensor, eps: float) -> bool:
@@ -505,24 +627,21 @@ def projection_scores(
     flat = volumes.reshape(batch, -1)
     occupied = flat.bool() if binary else flat > eps  # binary: values are exactly 0 or 1
     counts_only = binary or (binary is None and _is_binary(flat, eps))
-    missed = _missed_key(flat.shape[1])
+    table = _projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, volumes.device)
+    columns = table.column_of_view
     total = torch.zeros(batch, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     hits = torch.zeros(batch, viewpoints.shape[0], dtype=torch.int32, device=volumes.device)
-    for chunk in _object_chunks(occupied, viewpoints.shape[0]):
-        # binary: only the hits are counted; values: gathered and summed (after counting the hits, for a mean)
-        rows = None if counts_only else _value_rows(flat[chunk])
-        chunk_hits, chunk_total = hits[chunk], total[chunk]
-
-        def score(views: Tensor, best: Tensor) -> None:
-            if rows is None or reduction == "mean":
-                count = (best != missed).sum(-1, dtype=torch.int32)
-                chunk_hits.index_copy_(1, views, count)
-            if rows is None:
-                chunk_total.index_copy_(1, views, count.to(dtype))
-            else:  # _hit_sums overwrites best: after the count
-                chunk_total.index_copy_(1, views, _hit_sums(best, rows).to(dtype))
-
-        _first_hits(occupied[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score)
+    for chunk in _object_chunks(occupied, viewpoints.shape[0], table.pixel_of.numel()):
+        if counts_only:  # every hit is worth 1: count the hit slots
+            count = _first_hits(occupied[chunk], resolution, table, hits_only=True).sum(-1, dtype=torch.int32)
+            hits[chunk] = count.index_select(1, columns)
+            total[chunk] = hits[chunk].to(dtype)
+        else:  # values: gathered and summed, with the hit count in a second column for a mean
+            best = _first_hits(occupied[chunk], resolution, table)
+            sums = _hit_sums(best, _value_rows(flat[chunk], counts=reduction == "mean")).index_select(1, columns)
+            total[chunk] = sums[..., 0].to(dtype)
+            if reduction == "mean":
+                hits[chunk] = sums[..., 1].to(torch.int32)  # exact: a count <= S^2 is exact in float32
     if reduction == "sum":
         return total
     return torch.where(hits > 0, total / hits.clamp_min(1).to(dtype), torch.zeros_like(total))
@@ -564,22 +683,16 @@ def visible_error_scores(
     occupied_pred, occupied_gt = predicted >= threshold, target >= 0.5
     errors = occupied_pred != occupied_gt if mode == "binary" else (predicted - target).abs()
     surface, errors = (occupied_pred | occupied_gt).reshape(batch, -1), errors.reshape(batch, -1)
+    table = _projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, predicted.device)
     scores = predicted.new_zeros(batch, viewpoints.shape[0])
-    for chunk in _object_chunks(surface, viewpoints.shape[0]):
-        chunk_scores = scores[chunk]
+    for chunk in _object_chunks(surface, viewpoints.shape[0], table.pixel_of.numel()):
         if mode == "binary":  # the keys carry the error bit of the first hit
-
-            def score(views: Tensor, best: Tensor) -> None:
-                chunk_scores.index_copy_(1, views, best.bitwise_and_(1).sum(-1, dtype=torch.int32).to(scores.dtype))
-
-            flags = errors[chunk]
+            best = _first_hits(surface[chunk], resolution, table, errors[chunk])
+            seen = best.bitwise_and_(1).sum(-1, dtype=torch.int32)
         else:
-            rows, flags = _value_rows(errors[chunk], predicted.dtype), None
-
-            def score(views: Tensor, best: Tensor) -> None:
-                chunk_scores.index_copy_(1, views, _hit_sums(best, rows).to(scores.dtype))
-
-        _first_hits(surface[chunk], resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, score, flags)
+            best = _first_hits(surface[chunk], resolution, table)
+            seen = _hit_sums(best, _value_rows(errors[chunk], predicted.dtype))[..., 0]
+        scores[chunk] = seen.index_select(1, table.column_of_view).to(scores.dtype)
     return scores
 
 
@@ -630,16 +743,16 @@ def error_projection(
         return result[0] if unbatched else result
 
     flat = vol.reshape(batch, -1)
-    binary = _is_binary(flat, eps)  # the paper's binary error: every hit has value 1
-    result = vol.new_zeros(batch, vp.shape[0], size * size)
-
-    def project(views: Tensor, best: Tensor) -> None:
-        best = best[..., : size * size]
-        maps = (best != _missed_key(flat.shape[1])).to(vol.dtype) if binary else _hit_values(best, flat)
-        result.index_copy_(1, views, maps)
-
-    _first_hits(flat > eps, resolution, vp, size, half_extent, project)
-    result = result.view(out_shape)
+    table = _projection_table(resolution, vp, size, half_extent, vol.device)
+    if _is_binary(flat, eps):  # the paper's binary error: every hit has value 1
+        maps = _first_hits(flat > eps, resolution, table, hits_only=True).to(vol.dtype)
+    else:
+        maps = _hit_values(_first_hits(flat > eps, resolution, table), flat)
+    # from the slots of each view's column back to its image (unused slots and the sink go to pixel S^2, dropped)
+    columns = table.column_of_view
+    result = vol.new_zeros(batch, vp.shape[0], size * size + 1)
+    result.scatter_(2, table.pixel_of.expand(batch, -1, -1), maps.index_select(1, columns))
+    result = result[..., : size * size].reshape(out_shape)
     return result[0] if unbatched else result
 
 
