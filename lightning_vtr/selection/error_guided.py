@@ -11,6 +11,7 @@ from lightning_vtr.geometry import candidate_viewpoints, check_bin_interval, sam
 from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories, view_set_losses
 from lightning_vtr.selection.diversity import choose_bins
 from lightning_vtr.selection.projection import (
+    _soft_error_scores,
     check_volume_pair,
     error_volume,
     projection_scores,
@@ -214,7 +215,15 @@ class ErrorGuidedSelector(ViewSelector):
             if self.mask == "gt":
                 errors &= target >= 0.5
         else:
-            errors = self.error_volume(predicted, target)
+            # the soft error does not depend on the threshold: scored without building the error volume first
+            return _soft_error_scores(
+                predicted,
+                target,
+                self.candidates.to(predicted.device),
+                mask=self.mask,
+                reduction=self.reduction,
+                eps=self.eps,
+            ).to(predicted.dtype)
         # equal to view_scores(error_projection(errors, candidates, eps=eps)) without the (B, V, R, R) maps
         return projection_scores(
             errors,

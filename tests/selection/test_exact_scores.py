@@ -156,3 +156,23 @@ def test_scores_do_not_depend_on_the_chunking(monkeypatch):
     )
     for one, other in zip(whole, chunked):
         assert torch.equal(one, other)
+
+
+@pytest.mark.parametrize("mask", [None, "gt"])
+@pytest.mark.parametrize("reduction", ["sum", "mean"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_soft_error_scores_equal_the_two_step_form_exactly(mask, reduction, dtype):
+    # The selector's soft scores write the error straight into the summed rows; they must equal scoring the
+    # error volume, bit for bit, also with eps, a NaN and half precision (which takes the two-step form).
+    from lightning_vtr.selection.projection import _soft_error_scores
+
+    predicted, target = random_objects(9, seed=21)
+    predicted, target = predicted.to(dtype), target.to(dtype)
+    predicted[1, 2, 3, 4] = float("nan")
+    views = VIEWS["mixed"]
+    for eps in (0.0, 0.25):
+        errors = error_volume(predicted, target, mode="soft", mask=mask)
+        expected = projection_scores(errors, views, reduction=reduction, eps=eps, binary=False)
+        got = _soft_error_scores(predicted, target, views, mask=mask, reduction=reduction, eps=eps)
+        assert got.dtype == expected.dtype
+        assert torch.equal(got, expected)
