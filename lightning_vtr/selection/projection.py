@@ -550,7 +550,7 @@ def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
 
 
 def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
-    """``(B * (N + 1), 1)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
+    """``(B * (N + 1), k)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
     In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32. With ``counts`` the
     rows have a second column, 1 for a voxel and 0 for the miss: the same sum then also counts the hits.
