@@ -77,7 +77,7 @@ _TABLE_VIEW_CHUNK = 16
 #: Occupied (voxel, view) pairs per chunk of objects in the score functions, before culling: bounds the
 #: index buffers (culling keeps about a sixth to a half of them, at 12 bytes each). On 2 cores, 64 objects at
 #: R = 32, K = 30 (2^22 to 2^24 pairs) scored as fast in chunks of 2^22 to 2^25 pairs.
-_SCORE_CHUNK_PAIRS = 1 << 24
+_SCORE_CHUNK_PAIRS = 1 << 25
 #: Buffer slots (objects x views x slots per view) per chunk of objects: at most 64 MB of int32 keys.
 _SCORE_CHUNK_SLOTS = 1 << 24
 
@@ -201,7 +201,7 @@ class _ViewGroup(NamedTuple):
     """
 
     views: Tensor  # (Vg,) int64: the group's views in the viewpoint order
-    slot: Tensor  # (N, Vg) int64 buffer slots: c * S + the slot of the voxel's pixel, c the view's buffer column
+    slot: Tensor  # (N, Vg) buffer slots: c * S + the slot of the voxel's pixel, c the view's buffer column
     key: Tensor  # (N, Vg) first-hit keys
     flag_key: Tensor  # (N, Vg) the keys' ranks, doubled: room for a flag bit (see _first_hits)
     occludable: Tensor  # (N,) bool
@@ -220,7 +220,7 @@ class _Table(NamedTuple):
     """
 
     groups: list[_ViewGroup]
-    slot: Tensor  # (G, N, W) int64: the groups' slots (_ViewGroup.slot), padded to W by repeating the first view
+    slot: Tensor  # (G, N, W): the groups' slots (_ViewGroup.slot), padded to W by repeating the first view
     key: Tensor  # (G, N, W) the groups' keys, padded alike
     flag_key: Tensor  # (G, N, W) the groups' flag keys, padded alike
     block_index: Tensor  # (N,) int64: voxel (i, j, k) at (i, j, k) of an (R + 1)^3 grid
@@ -373,7 +373,10 @@ def _projection_table(
     padded = torch.stack([torch.cat([group[0], group[0][:1].expand(width - len(group[0]))]) for group in groups])
     slot = (compact[:, padded] + column_of_view[padded] * stride).permute(1, 0, 2).contiguous()
     group_key = key[:, padded].permute(1, 0, 2).contiguous()
-    slot, group_key = slot.to(device), group_key.to(device=device, dtype=key_dtype)
+    # int32 slots where they fit: half the table's memory (the gather, the add and scatter_reduce's conversion to
+    # int64 cost about what int64 slots do)
+    slot = slot.to(device=device, dtype=torch.int32 if n_views * stride <= int32_max else torch.int64)
+    group_key = group_key.to(device=device, dtype=key_dtype)
     flag_key = ((group_key >> bits) << 1).to(flag_dtype)
     view_groups = [
         _ViewGroup(
@@ -483,10 +486,16 @@ def _first_hits(
     flat_ids = _flat_nonzero(occupied.reshape(batch, -1).logical_and(deep.logical_not_()).view(-1))
     obj, vox = flat_ids // n_vox, flat_ids % n_vox
     flag_bits = None if flags is None else flags.reshape(-1).index_select(0, flat_ids)
-    # int64 buffer indices (and slots): scatter_reduce would convert int32 ones, a pass over every pair
-    base = obj * per_object
+    # CPU: buffer indices in the slots' dtype where the whole buffer fits it (it does in the score functions'
+    # chunks); other devices get int64, as their scatter wants
+    fits = obj.device.type == "cpu" and batch * per_object <= torch.iinfo(table.slot.dtype).max
+    index_dtype = table.slot.dtype if fits else torch.int64
+    base = (obj * per_object).to(index_dtype)
     if hits_only:
-        best = torch.zeros(batch * per_object, dtype=torch.uint8, device=obj.device)
+        # uint8 on CPU (a quarter of the bytes to fill and sum); int32 elsewhere, where atomics want 32 bits
+        best = torch.zeros(
+            batch * per_object, dtype=torch.uint8 if obj.device.type == "cpu" else torch.int32, device=obj.device
+        )
         missed = 0
     else:
         key_dtype = table.key.dtype if flags is None else table.flag_key.dtype
@@ -512,7 +521,8 @@ def _first_hits(
     for g, part in enumerate(rows.split(counts)):
         part.add_(g * n_vox)
     width = table.slot.shape[-1]
-    index = table.slot.view(-1, width).index_select(0, rows).add_(base.index_select(0, kept)[:, None]).view(-1)
+    index = table.slot.view(-1, width).index_select(0, rows).to(index_dtype)
+    index = index.add_(base.index_select(0, kept)[:, None]).view(-1)
     if hits_only:
         best.scatter_reduce_(0, index, best.new_ones(index.numel()), reduce="amax")
     else:
@@ -529,16 +539,26 @@ def _first_hits(
 
 
 def _object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> list[slice]:
-    """Consecutive slices of the ``(B, N)`` batch, each scattering about :data:`_SCORE_CHUNK_PAIRS` pairs into
-    at most :data:`_SCORE_CHUNK_SLOTS` slots."""
-    chunks, start, pairs = [], 0, 0
+    """Consecutive slices of the ``(B, N)`` batch of about equal numbers of (voxel, view) pairs, as few as keep each
+    under :data:`_SCORE_CHUNK_PAIRS` pairs and :data:`_SCORE_CHUNK_SLOTS` buffer slots (an object alone may
+    exceed them)."""
+    pairs = (occupied.sum(1, dtype=torch.int32).long() * num_views).cumsum(0).tolist()
+    batch = len(pairs)
+    count = max(-(-pairs[-1] // _SCORE_CHUNK_PAIRS), -(-batch * slots_per_object // _SCORE_CHUNK_SLOTS), 1)
     max_objects = max(1, _SCORE_CHUNK_SLOTS // slots_per_object)
-    for index, count in enumerate((occupied.sum(1, dtype=torch.int32).long() * num_views).tolist()):
-        if pairs and (pairs + count > _SCORE_CHUNK_PAIRS or index - start >= max_objects):
-            chunks.append(slice(start, index))
-            start, pairs = index, 0
-        pairs += count
-    chunks.append(slice(start, occupied.shape[0]))
+    chunks, start = [], 0
+    while start < batch:
+        # chunk c < count ends where the running pair count first reaches c / count of the total; the last takes
+        # the rest; all within the object bound
+        c = len(chunks) + 1
+        end = (
+            next((i + 1 for i in range(start, batch) if pairs[i] * count >= pairs[-1] * c), batch)
+            if c < count
+            else batch
+        )
+        end = min(max(end, start + 1), start + max_objects)
+        chunks.append(slice(start, end))
+        start = end
     return chunks
 
 
