@@ -23,6 +23,8 @@ from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.synthesis.render import RenderSynthesizer
 
 __all__ = [
+    "build_odd_dataset",
+    "odd_model",
     "EmptyPredictionModel",
     "TinyUserModel",
     "assert_same_training_state",
@@ -248,3 +250,33 @@ def decode_viewpoints(images: torch.Tensor) -> torch.Tensor:
     """(N, 3, 2, 2) images of :class:`ViewpointSynthesizer` -> (N, 2) viewpoints in degrees."""
     code = images[:, :2, 0, 0] * 256 + images[:, :2, 0, 1]
     return code / 65535 * torch.tensor([360.0, 180.0], dtype=images.dtype) - torch.tensor([180.0, 90.0])
+
+
+def build_odd_dataset(root: Path, split: tuple[float, float, float]) -> Path:
+    """3 categories x 5 objects at 32 px with 4 views per set; ``split`` (train, val, test) of 0.6 gives a split of
+    9 objects, which 2 DDP ranks cannot share evenly (the padding sampler repeats one)."""
+    from lightning_vtr.data.builder import build_dataset
+
+    build_dataset(
+        root,
+        source="procedural",
+        categories=["chair", "table", "airplane"],
+        objects_per_category=5,
+        image_size=32,
+        resolution=32,
+        views_per_set=4,
+        split=split,
+        workers=1,
+        progress=False,
+    )
+    return root
+
+
+def odd_model(fscore_points: int):
+    """A seeded two-view tiny Pix2Vox++ over the categories of :func:`build_odd_dataset`."""
+    from lightning_vtr.models import Pix2VoxPlusPlus
+
+    torch.manual_seed(0)
+    return Pix2VoxPlusPlus(
+        preset="tiny", num_views=2, fscore_points=fscore_points, categories=("airplane", "chair", "table")
+    )

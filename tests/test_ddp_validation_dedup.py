@@ -14,12 +14,11 @@ from __future__ import annotations
 import lightning as L
 import pytest
 import torch
-from helpers import one_thread
+from helpers import build_odd_dataset, odd_model, one_thread
 from torch.utils.data import DataLoader, DistributedSampler
 
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.metrics import voxel_fscore, voxel_iou
-from lightning_vtr.models import Pix2VoxPlusPlus
 
 FSCORE_POINTS = 512
 N_VAL = 9
@@ -43,30 +42,12 @@ class _CountObjects(L.Callback):
 @pytest.fixture(scope="module")
 def odd_dataset(tmp_path_factory):
     """3 categories x 5 objects, 3 of each in the validation split: 9 validation objects."""
-    from lightning_vtr.data.builder import build_dataset
-
-    root = tmp_path_factory.mktemp("odd_val_vtr")
-    build_dataset(
-        root,
-        source="procedural",
-        categories=["chair", "table", "airplane"],
-        objects_per_category=5,
-        image_size=32,
-        resolution=32,
-        views_per_set=4,
-        split=(0.2, 0.6, 0.2),
-        workers=1,
-        progress=False,
-    )
-    return root
+    return build_odd_dataset(tmp_path_factory.mktemp("odd_val_vtr"), split=(0.2, 0.6, 0.2))
 
 
 @pytest.fixture(scope="module")
 def model():
-    torch.manual_seed(0)
-    return Pix2VoxPlusPlus(
-        preset="tiny", num_views=2, fscore_points=FSCORE_POINTS, categories=("airplane", "chair", "table")
-    )
+    return odd_model(FSCORE_POINTS)
 
 
 def _datamodule(root, **kw) -> VTRDataModule:
