@@ -26,26 +26,18 @@ def _outputs_and_grads(layer: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor,
     return y.detach(), x.grad, layer.weight.grad
 
 
-@pytest.mark.parametrize("channels", [1, 4, 8])
-def test_the_volume_head_equals_a_one_output_1x1x1_convolution(channels):
+@pytest.mark.parametrize(
+    "head_class, plain_class, channels",
+    [(VolumeHead, nn.Conv3d, c) for c in (1, 4, 8)] + [(VolumeHeadTransposed, nn.ConvTranspose3d, c) for c in (1, 3)],
+)
+def test_a_volume_head_equals_the_one_output_1x1x1_layer_it_replaces(head_class, plain_class, channels):
     torch.manual_seed(0)
-    head = VolumeHead(channels)
-    conv = nn.Conv3d(channels, 1, 1, bias=False)
-    conv.weight.data.copy_(head.weight.data)
+    head = head_class(channels)
+    plain = plain_class(channels, 1, 1, bias=False)
+    plain.weight.data.copy_(head.weight.data)
     x = torch.randn(3, channels, 5, 6, 7)
-    for got, expected in zip(_outputs_and_grads(head, x), _outputs_and_grads(conv, x)):
+    for got, expected in zip(_outputs_and_grads(head, x), _outputs_and_grads(plain, x)):
         assert got.shape == expected.shape
-        torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
-
-
-@pytest.mark.parametrize("channels", [1, 3])
-def test_the_transposed_volume_head_equals_a_one_output_1x1x1_transposed_convolution(channels):
-    torch.manual_seed(0)
-    head = VolumeHeadTransposed(channels)
-    conv = nn.ConvTranspose3d(channels, 1, 1, bias=False)
-    conv.weight.data.copy_(head.weight.data)
-    x = torch.randn(2, channels, 4, 4, 4)
-    for got, expected in zip(_outputs_and_grads(head, x), _outputs_and_grads(conv, x)):
         torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
 
 
