@@ -49,7 +49,7 @@ from lightning_vtr.data.dataset import _transform, load_rgba, load_voxels
 from lightning_vtr.data.format import SHAPENET_SYNSETS, SPLITS, ObjectRecord
 from lightning_vtr.data.shapenet_rendering import _load_split_file
 from lightning_vtr.data.transforms import ImageTransform
-from lightning_vtr.experiments.tables import format_cell
+from lightning_vtr.evaluation.tables import format_cell
 from lightning_vtr.metrics.functional import DEFAULT_FSCORE_CONVENTION, DEFAULT_IOU_THRESHOLDS
 from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU
 from lightning_vtr.protocol import VIEW_SETS

@@ -6,7 +6,6 @@
 * :mod:`~lightning_vtr.experiments.report`: ``lightning-vtr report``: Table 1 over seeds with confidence
   intervals, paired differences, the training views' distribution, the time split and the ablations.
 * :mod:`~lightning_vtr.experiments.statistics`: confidence intervals, paired differences, view spread.
-* :mod:`~lightning_vtr.experiments.tables`: the Table-1 layout.
 
 Not needed to use the plugin: :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` with any
 Trainer and model is all the paper's method requires (``examples/quickstart.py``).

@@ -13,7 +13,7 @@ import argparse
 import time
 from typing import Any
 
-from lightning_vtr.experiments.tables import format_robustness_table
+from lightning_vtr.evaluation.tables import format_robustness_table
 from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, ExperimentConfig, pretrain, run_strategy
 from lightning_vtr.utils.validation import check_choice
 

@@ -91,7 +91,7 @@ from lightning_vtr.experiments.statistics import (
     pitch_histogram,
     triplet_spread,
 )
-from lightning_vtr.experiments.tables import BEST_IOU, VIEW_SET_TITLES, best_threshold_iou, format_robustness_table
+from lightning_vtr.evaluation.tables import BEST_IOU, VIEW_SET_TITLES, best_threshold_iou, format_robustness_table
 from lightning_vtr.experiments.training import STRATEGIES, VARIANTS, ExperimentConfig
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.io import atomic_write

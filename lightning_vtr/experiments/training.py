@@ -23,7 +23,7 @@ import torch
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data import IMAGE_RECIPES
 from lightning_vtr.data.datamodule import VTRDataModule
-from lightning_vtr.experiments.tables import results_from_test_output
+from lightning_vtr.evaluation.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.lrgt import LRGT
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus

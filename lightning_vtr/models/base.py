@@ -29,7 +29,7 @@ set without padding, and :meth:`test_step` drops the repeats a padding ``Distrib
 default for other loaders) adds, so test means equal one process's. Per-category results need the
 category vocabulary to be identical on every process under DDP: pass ``categories`` or let :meth:`setup`
 take ``datamodule.categories``.
-:func:`lightning_vtr.experiments.tables.results_from_test_output` turns ``trainer.test(...)`` output into
+:func:`lightning_vtr.evaluation.tables.results_from_test_output` turns ``trainer.test(...)`` output into
 the nested dict the paper-style table takes.
 
 :meth:`VoxelReconstructionModule.load_from_checkpoint` builds the model inside

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from lightning_vtr.experiments.tables import results_from_test_output
+from lightning_vtr.evaluation.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.weights import is_restoring_checkpoint
 from lightning_vtr.protocol import ReconstructionModel

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from lightning_vtr.experiments.tables import (
+from lightning_vtr.evaluation.tables import (
     VIEW_SET_TITLES,
     format_cell,
     format_robustness_table,
