@@ -76,7 +76,7 @@ _TABLE_CACHE_SIZE = 6
 _TABLE_VIEW_CHUNK = 16
 #: Occupied (voxel, view) pairs per chunk of objects in the score functions, before culling: bounds the
 #: index buffers (culling keeps about a sixth to a half of them, at 12 bytes each). On 2 cores, 64 objects at
-#: R = 32, K = 30 (2^22 to 2^24 pairs) scored as fast in chunks of 2^22 to 2^25 pairs.
+#: R = 32, K = 30 (2^22 to 2^24 pairs) scored as fast in chunks of 2^22 to 2^25 pairs, a bit faster in one.
 _SCORE_CHUNK_PAIRS = 1 << 25
 #: Buffer slots (objects x views x slots per view) per chunk of objects: at most 64 MB of int32 keys.
 _SCORE_CHUNK_SLOTS = 1 << 24
@@ -251,7 +251,7 @@ def _missed_key(n_vox: int) -> int:
 def _view_groups(
     slot: Tensor, key: Tensor, resolution: int, viewpoints: Tensor
 ) -> list[tuple[Tensor, Tensor, Tensor, int, int]]:
-    """Split the ``(N, V)`` pixel and key table by the octant the cameras look from.
+    """Split the ``(V, N)`` pixel and key tables by the octant the cameras look from.
 
     Per group: its views, its occludable voxels (see :class:`_ViewGroup`), each voxel's hiding set and own bit
     of the block code (see :func:`_first_hits`), and its block offset.
@@ -269,18 +269,17 @@ def _view_groups(
     ijk = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     strides = torch.tensor([resolution * resolution, resolution, 1])
     padded_strides = torch.tensor([(resolution + 1) ** 2, resolution + 1, 1])
-    # covers[d, c]: whether block code c has a bit in common with mask d
     codes = torch.arange(256)
-    covers = (codes[:, None] & codes) != 0
     bit_count = sum((codes >> bit) & 1 for bit in range(8))
     groups = []
     for steps, views in by_steps.items():
         columns = torch.tensor(views)
-        group_slot, group_key = slot[:, columns], key[:, columns]
+        # (N, Vg) of the (V, N) tables: a row gather, then one transposing copy
+        group_slot, group_key = slot[columns].t().contiguous(), key[columns].t().contiguous()
         up = [int(step > 0) for step in steps]
         # hides[n, w]: which voxels of n's block towards the cameras hide it in view w (same pixel, smaller
         # key), as bits of the block code (bit 4 e_x + 2 e_y + e_z for the block voxel at offset e - 1 + up)
-        hides = torch.zeros(group_slot.shape, dtype=torch.int64)
+        hides = torch.zeros(group_slot.shape, dtype=torch.uint8)
         for offset in itertools.product(*[(0, step) for step in steps]):
             if not any(offset):
                 continue
@@ -289,22 +288,48 @@ def _view_groups(
             index = (moved.clamp(0, resolution - 1) * strides).sum(-1)
             hidden = (group_slot[index] == group_slot) & (group_key[index] < group_key) & inside
             e = [o - u + 1 for o, u in zip(offset, up)]
-            hides |= hidden.long() << (4 * e[0] + 2 * e[1] + e[2])
+            hides.add_(hidden, alpha=1 << (4 * e[0] + 2 * e[1] + e[2]))  # distinct bits: add = or
         # A voxel is hidden in every view of the group if its block's occupied voxels (code c) include one that
         # hides it in each view: c & hides[:, w] != 0 for every w. The table keeps one smallest such set
         # (`hiding`): an occupied `hiding` proves the voxel hidden. Among the smallest, face neighbours first
         # (more often occupied on a surface than edge or corner ones). Without any, it keeps the voxel's own bit,
         # which the lookup clears from the code: never all set.
-        hit = covers[hides[:, 0]]
-        for w in range(1, len(views)):
-            hit &= covers[hides[:, w]]
         own = 4 * (1 - up[0]) + 2 * (1 - up[1]) + (1 - up[2])
-        distance = sum(((codes >> bit) & 1) * bin(bit ^ own).count("1") for bit in range(8))
-        cost = torch.where(hit, bit_count * 64 + distance, 1 << 20)
-        hiding = torch.where(hit.any(1), cost.argmin(1), 1 << own)
+        hiding = _smallest_hitting_sets(hides, own, codes, bit_count)
         block_offset = int((padded_strides * (torch.tensor(steps) > 0)).sum())
         groups.append((columns, (hides != 0).all(1), hiding, own, block_offset))
     return groups
+
+
+def _smallest_hitting_sets(hides: Tensor, own: int, codes: Tensor, bit_count: Tensor) -> Tensor:
+    """Per row of ``hides (N, W)`` (block-code masks), the first block code, in order of (bits set, distance of
+    its voxels from the voxel ``own`` names), without bit ``own``, that has a bit in common with every mask;
+    ``1 << own`` where none has.
+
+    Bit-parallel: the 128 candidate codes in that order are bits of 3 int64 words (43 per word, clear of the
+    sign bit); ANDing each row's ``covers`` words over its masks leaves the candidates that hit them all, and
+    the lowest set bit is the first.
+    """
+    distance = sum(((codes >> bit) & 1) * bin(bit ^ own).count("1") for bit in range(8))
+    candidates = codes[(codes >> own) & 1 == 0]
+    candidates = candidates[torch.argsort(bit_count[candidates] * 64 + distance[candidates], stable=True)]
+    position = torch.arange(len(candidates))
+    # covers[d]: the candidates with a bit in common with mask d, as bits (position % 43) of word (position // 43)
+    hits = (candidates[None, :] & codes[:, None]) != 0  # (256 masks, 128 candidates)
+    covers = torch.zeros(256, 3, dtype=torch.int64)
+    covers.index_add_(1, position // 43, hits.long() << (position % 43))
+    hides = hides.long()
+    words = covers[hides[:, 0]]
+    for w in range(1, hides.shape[1]):
+        words &= covers[hides[:, w]]
+    # the lowest set bit of the first nonzero word: its position is log2 of the bit, exact in float64
+    first = torch.full((hides.shape[0],), len(candidates), dtype=torch.int64)
+    for k in reversed(range(3)):
+        word = words[:, k]
+        bit = torch.log2((word & -word).double()).round().long() + 43 * k
+        first = torch.where(word != 0, bit, first)
+    found = first < len(candidates)
+    return torch.where(found, candidates[first.clamp(max=len(candidates) - 1)], 1 << own)
 
 
 def _projection_table(
@@ -347,8 +372,8 @@ def _projection_table(
         order = torch.argsort(group * n_vox + flat, dim=-1)
         rank = torch.empty_like(order).scatter_(-1, order, flat.expand_as(order).contiguous())
         keys.append((rank << bits) | flat)
-    pixel, key = torch.cat(slots), torch.cat(keys).t().contiguous()  # (V, N) pixels, (N, V) keys
-    groups = _view_groups(pixel.t(), key, resolution, vp64)
+    pixel, key = torch.cat(slots), torch.cat(keys)  # (V, N) each
+    groups = _view_groups(pixel, key, resolution, vp64)
 
     # Each view's used pixels, numbered in pixel order; the centres outside the image (pixel S^2) go to the sink.
     used = torch.zeros(n_views, pixels + 1, dtype=torch.bool).scatter_(1, pixel, True)
@@ -356,7 +381,7 @@ def _projection_table(
     used = used[:, :pixels]
     stride = int(used.sum(1).max()) + sink
     numbering = torch.cat([used.long().cumsum(1) - 1, torch.full((n_views, 1), stride - 1)], 1)
-    compact = numbering.gather(1, pixel).t()  # (N, V)
+    compact = numbering.gather(1, pixel)  # (V, N)
     # The buffer's columns: the groups' views, group after group.
     column_views = torch.cat([group[0] for group in groups])
     column_of_view = torch.empty(n_views, dtype=torch.int64)
@@ -371,8 +396,9 @@ def _projection_table(
     # repeated (slot, key) pair changes no minimum, and a group's rows are one contiguous block to gather from.
     width = max(len(group[0]) for group in groups)
     padded = torch.stack([torch.cat([group[0], group[0][:1].expand(width - len(group[0]))]) for group in groups])
-    slot = (compact[:, padded] + column_of_view[padded] * stride).permute(1, 0, 2).contiguous()
-    group_key = key[:, padded].permute(1, 0, 2).contiguous()
+    # row gathers of the (V, N) tables into (G, W, N), then (G, N, W)
+    slot = (compact[padded] + (column_of_view[padded] * stride)[..., None]).transpose(1, 2).contiguous()
+    group_key = key[padded].transpose(1, 2).contiguous()
     # int32 slots where they fit: half the table's memory (the gather, the add and scatter_reduce's conversion to
     # int64 cost about what int64 slots do)
     slot = slot.to(device=device, dtype=torch.int32 if n_views * stride <= int32_max else torch.int64)
