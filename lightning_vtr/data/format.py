@@ -21,6 +21,7 @@ from lightning_vtr.utils.io import atomic_write
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "IMAGE_SUFFIXES",
     "SHAPENET_SYNSETS",
     "SPLITS",
     "UP_AXES",
@@ -44,6 +45,9 @@ SPLITS = ("train", "val", "test")
 #: The up axes a source frame may have (``up_axis`` arguments): ``"y"`` (ShapeNet, glTF, ShapeNetVox32) is
 #: converted into the package's ``"z"`` (:mod:`lightning_vtr.geometry`).
 UP_AXES: tuple[str, ...] = ("y", "z")
+#: The picture files the readers take (suffix, compared case-insensitively): image folders of
+#: ``lightning-vtr predict``, folder test sets and background folders. PIL reads each of them.
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".webp", ".bmp")
 
 #: The 13 ShapeNetCore synsets of 3D-R2N2 / Pix2Vox / ShapeNet-VTR and the category names used for them.
 SHAPENET_SYNSETS: dict[str, str] = {

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from lightning_vtr.data.format import IMAGE_SUFFIXES
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 __all__ = [
@@ -79,8 +80,9 @@ _AUGMENTATION_STREAM = 7919
 # Appended after the augmentation stream for folder backgrounds: their draws come from a generator of their
 # own, so enabling them leaves every other draw of a key unchanged.
 _BACKGROUND_STREAM = 104729
-#: The image files a background folder contributes (suffix, case-insensitive; searched recursively).
-BACKGROUND_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg")
+#: The image files a background folder contributes (suffix, case-insensitive; searched recursively): the
+#: package's :data:`~lightning_vtr.data.format.IMAGE_SUFFIXES`.
+BACKGROUND_EXTENSIONS: tuple[str, ...] = IMAGE_SUFFIXES
 # Luma weights (ITU-R BT.601) of R, G, B: what the references' grayscale uses.
 _LUMA = (0.299, 0.587, 0.114)
 

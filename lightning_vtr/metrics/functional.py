@@ -23,6 +23,7 @@ __all__ = [
     "check_thresholds",
     "precision_recall",
     "surface_points",
+    "threshold_key",
     "voxel_fscore",
     "voxel_iou",
     "voxel_iou_best",
@@ -36,6 +37,22 @@ FSCORE_CONVENTIONS: tuple[str, ...] = ("community", "centred")
 
 #: The default convention, so that F-scores sit beside published tables (LegoFormer, LRGT).
 DEFAULT_FSCORE_CONVENTION = "community"
+
+
+def threshold_key(threshold: float) -> str:
+    """The name of the IoU at one binarisation threshold, as models log it and evaluations report it.
+
+    Args:
+        threshold: a binarisation threshold in ``[0, 1]``.
+
+    Returns:
+        ``"iou@<threshold>"`` with the shortest form of the number (``%g``).
+
+    Example:
+        >>> threshold_key(0.4), threshold_key(0.25)
+        ('iou@0.4', 'iou@0.25')
+    """
+    return f"iou@{threshold:g}"
 
 
 def _check_pair(preds: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:

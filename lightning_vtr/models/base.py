@@ -53,7 +53,7 @@ from torch import Tensor, nn
 from torch.utils.data import DistributedSampler
 
 from lightning_vtr.metrics import VoxelFScore, VoxelIoU
-from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
+from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, threshold_key
 from lightning_vtr.models.weights import restoring_checkpoint
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
@@ -67,10 +67,6 @@ if TYPE_CHECKING:
     from typing_extensions import Self  # typing.Self needs Python 3.11
 
 __all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
-
-
-def _threshold_key(threshold: float) -> str:
-    return f"iou@{threshold:g}"
 
 
 class VoxelReconstructionModule(L.LightningModule, abc.ABC):
@@ -436,7 +432,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         fscore.reset()
 
     def _flatten(self, iou: Tensor, fscore: Tensor | None) -> dict[str, float]:
-        out = {_threshold_key(t): float(v) for t, v in zip(self.iou_thresholds, iou)}
+        out = {threshold_key(t): float(v) for t, v in zip(self.iou_thresholds, iou)}
         if fscore is not None:
             out["fscore"] = float(fscore)
         return out
