@@ -25,8 +25,8 @@ from lightning_vtr.data import IMAGE_RECIPES
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation.tables import results_from_test_output
 from lightning_vtr.models.base import VoxelReconstructionModule
-from lightning_vtr.models.lrgt import LRGT
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+from lightning_vtr.models.registry import MODELS
 from lightning_vtr.selection import SELECTORS, make_selector
 from lightning_vtr.utils.deprecation import renamed_argument
 from lightning_vtr.utils.io import atomic_write
@@ -50,8 +50,6 @@ __all__ = [
     "run_strategy",
 ]
 
-#: Model name (``ExperimentConfig.model``, ``lightning-vtr report --model``) -> model class.
-MODELS: dict[str, type[VoxelReconstructionModule]] = {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
 #: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
 FINETUNE_LR_SCHEDULES = ("cosine", "constant")
 #: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of

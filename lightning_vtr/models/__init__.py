@@ -3,11 +3,14 @@
 Every model satisfies :class:`~lightning_vtr.protocol.ReconstructionModel`. ``Pix2VoxSpec`` and ``LRGTSpec``
 are the frozen architecture descriptions the presets hold (``PIX2VOX_PRESETS``, ``LRGT_PRESETS``) and each
 model's ``spec`` attribute. :func:`load_weights` reads pretrained weights from a path, a URL or ``"imagenet"``.
+:data:`MODELS` names the model classes and :func:`load_model` loads a trained model from a Lightning checkpoint
+(:mod:`lightning_vtr.models.registry`).
 """
 
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
 from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
+from lightning_vtr.models.registry import MODELS, check_checkpoint, load_model
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
 from lightning_vtr.models.weights import IMAGENET_WEIGHTS, WeightsDownloadError, load_weights
@@ -17,6 +20,7 @@ __all__ = [
     "IMAGENET_WEIGHTS",
     "LRGT",
     "LRGT_PRESETS",
+    "MODELS",
     "PIX2VOX_PRESETS",
     "VIEW_SETS",
     "DistilledVisionTransformer",
@@ -26,6 +30,8 @@ __all__ = [
     "ResNet50Stem",
     "VoxelReconstructionModule",
     "WeightsDownloadError",
+    "check_checkpoint",
+    "load_model",
     "load_timm_deit",
     "load_torchvision_resnet50",
     "load_weights",

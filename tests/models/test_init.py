@@ -37,5 +37,8 @@ def test_all_lists_exactly_the_public_names():
         "IMAGENET_WEIGHTS",
         "WeightsDownloadError",
         "load_weights",
+        "MODELS",
+        "check_checkpoint",
+        "load_model",
     }
     assert set(m.__all__) <= set(dir(m))
