@@ -7,9 +7,8 @@ entry. ``fit`` / ``validate`` / ``test`` go to Lightning's ``LightningCLI``
 unless its words use LightningCLI's options (``--config``, ``--ckpt_path``, ``--trainer.*``, ...), then it goes
 to LightningCLI too. Errors a user can fix print one line to stderr naming the thing, what was expected and
 what was found, never a traceback: exit status 2 for usage errors (a missing path, ``--shard 3/2``, an output
-folder holding other files; argparse's own usage errors exit with 2 as well), 1 for data errors (a truncated
-checkpoint, a file that is not a picture, a full disk); see :mod:`lightning_vtr.errors` and
-``docs/bad_input.md``.
+folder holding other files, an option argparse rejects), 1 for data errors (a truncated checkpoint, a file that
+is not a picture, a full disk); see :mod:`lightning_vtr.errors` and ``docs/bad_input.md``.
 """
 
 from __future__ import annotations
@@ -22,7 +21,7 @@ from collections.abc import Callable, Sequence
 
 from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
-from lightning_vtr.errors import EXPECTED_ERRORS, exit_status, one_line
+from lightning_vtr.errors import EXPECTED_ERRORS, UsageError, exit_status, one_line
 
 __all__ = ["COMMANDS", "build_parser", "goes_to_lightning", "main"]
 
@@ -51,9 +50,29 @@ def goes_to_lightning(words: Sequence[str]) -> bool:
     return words[0] not in COMMANDS or any(_LIGHTNING_WORD.match(word) for word in words[1:])
 
 
+class _ParseError(UsageError):
+    """An option argparse rejected, with the program (``lightning-vtr COMMAND``) whose parser rejected it."""
+
+    def __init__(self, prog: str, message: str) -> None:
+        super().__init__(f"{message} (`{prog} --help` lists the options)")
+        self.prog = prog
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are raised as :class:`_ParseError` (one line from :func:`main`)
+    instead of printing the usage and exiting."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise _ParseError(self.prog, message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The parser of every sub-command of :data:`COMMANDS` (not of the LightningCLI ones)."""
-    parser = argparse.ArgumentParser(
+    """The parser of every sub-command of :data:`COMMANDS` (not of the LightningCLI ones).
+
+    Its errors (an unknown option, a value a type check rejects, a missing required option) raise
+    :class:`~lightning_vtr.errors.UsageError` rather than exiting; ``--help`` still prints and exits.
+    """
+    parser = _Parser(
         prog="lightning-vtr", description="View transformation robustness for multi-view 3D reconstruction."
     )
     parser.epilog = (
@@ -74,7 +93,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if goes_to_lightning(words):
         command, run = words[0], lambda: run_lightning_cli(None if argv is None else words)
     else:
-        args = build_parser().parse_args(words)
+        try:
+            args = build_parser().parse_args(words)
+        except _ParseError as err:
+            print(f"{err.prog}: error: {one_line(err)}", file=sys.stderr)
+            return exit_status(err)
         args.command_line = shlex.join(["lightning-vtr", *words])  # shown in reports
         command, run = args.command, lambda: args.run(args)
     try:

@@ -148,7 +148,7 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
     import sys
 
     from lightning_vtr.cli.predict import check_checkpoint
-    from lightning_vtr.errors import UsageError
+    from lightning_vtr.errors import DataError, UsageError
 
     words = list(sys.argv[1:] if argv is None else argv)
     if not any(word in ("-h", "--help") for word in words):
@@ -157,7 +157,11 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
         for path in _option_values(words, ("--ckpt_path",)):
             if path not in ("best", "last", "hpc", "registry", "null", "None"):
                 check_checkpoint(path, "--ckpt_path")
-        for root in _option_values(words, ("--data.root",)):
+                check_checkpoint_class(path, configured_model(words))
+        roots = _option_values(words, ("--data.root",))
+        if not roots:  # the last config that names a dataset root decides, as in LightningCLI
+            roots = [root for path in _option_values(words, ("--config", "-c")) if (root := config_root(path))][-1:]
+        for root in roots:
             if root not in ("null", "None", ""):  # before the Trainer prints its banner
                 from pathlib import Path
 
@@ -168,4 +172,122 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
         VTRLightningCLI(args=None if argv is None else list(argv), parser_kwargs={"exit_on_error": False})
     except argparse.ArgumentError as err:
         raise UsageError(str(err)) from None
+    except RuntimeError as err:
+        checkpoints = _option_values(words, ("--ckpt_path",))
+        if checkpoints and str(err).startswith("Error(s) in loading state_dict for "):
+            raise DataError(_weights_mismatch(str(err), checkpoints[-1])) from None
+        raise
     return 0
+
+
+def _config_section(path: str, section: str) -> Any:
+    """The ``section`` (``"data"``, ``"model"``) of a LightningCLI YAML config; ``None`` when it is unreadable."""
+    from pathlib import Path
+
+    import yaml
+
+    try:
+        settings = yaml.safe_load(Path(path).expanduser().read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return settings.get(section) if isinstance(settings, dict) else None
+
+
+def config_root(path: str) -> str | None:
+    """The dataset root a LightningCLI config sets (``data: {root: ...}`` or ``data: {init_args: {root: ...}}``),
+    ``None`` when it sets none or is not a readable YAML mapping."""
+    data = _config_section(path, "data")
+    if not isinstance(data, dict):
+        return None
+    init_args = data.get("init_args")
+    root = init_args.get("root") if isinstance(init_args, dict) else data.get("root")
+    return str(root) if root is not None else None
+
+
+def configured_model(words: Sequence[str]) -> type | None:
+    """The model class a LightningCLI command line names: the last ``--model`` / ``--model.class_path`` value,
+    else the last config's ``model: {class_path: ...}``; ``None`` when none names an importable class."""
+    import importlib
+
+    names = [value for value in _option_values(words, ("--model", "--model.class_path")) if "." in value]
+    if not names:
+        sections = [_config_section(path, "model") for path in _option_values(words, ("--config", "-c"))]
+        names = [m["class_path"] for m in sections if isinstance(m, dict) and isinstance(m.get("class_path"), str)]
+    if not names:
+        return None
+    module, _, name = names[-1].rpartition(".")
+    try:
+        found = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError):
+        return None  # LightningCLI reports it
+    return found if isinstance(found, type) else None
+
+
+def _model_classes() -> list[type]:
+    """The reconstruction model classes defined so far (the package's and any the user imported)."""
+    found, queue = [], [VoxelReconstructionModule]
+    while queue:
+        for cls in queue.pop().__subclasses__():
+            found.append(cls)
+            queue.append(cls)
+    return found
+
+
+def check_checkpoint_class(path: str, model: type | None) -> None:
+    """Refuse a ``--ckpt_path`` whose hyperparameters the configured model class does not take.
+
+    LightningCLI applies a checkpoint's hyperparameters to the configured model; those of another class
+    would otherwise end in jsonargparse's long validation error.
+
+    Raises:
+        DataError: the checkpoint holds hyperparameters ``model.__init__`` has no argument for; the message
+            names the class that takes them, when one is defined.
+    """
+    import inspect
+
+    import torch
+
+    from lightning_vtr.errors import DataError
+
+    if model is None:
+        return
+    try:
+        hparams = torch.load(path, map_location="cpu", weights_only=True).get("hyper_parameters") or {}
+    except Exception:  # check_checkpoint read it already; a full pickle is left to Lightning
+        return
+
+    def takes(cls: type) -> bool:
+        parameters = inspect.signature(cls.__init__).parameters
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+            return True
+        return all(key in parameters for key in hparams if not key.startswith("_"))
+
+    if takes(model):
+        return
+    owners = [cls.__name__ for cls in _model_classes() if takes(cls)]
+    unknown = [key for key in hparams if not key.startswith("_") and key not in inspect.signature(model).parameters]
+    owner = f"a checkpoint of {' or '.join(owners)}" if owners else "a checkpoint of another model class"
+    raise DataError(
+        f"`--ckpt_path` must be a checkpoint of the configured model ({model.__name__}), got {path!r}: {owner} "
+        f"(hyperparameters {', '.join(unknown[:3])}{', ...' if len(unknown) > 3 else ''} that "
+        f"{model.__name__} does not take)"
+    )
+
+
+def _weights_mismatch(message: str, checkpoint: str) -> str:
+    """One line for torch's ``load_state_dict`` error on ``--ckpt_path``: which model, how many keys differ."""
+    import re
+
+    model = message[len("Error(s) in loading state_dict for ") :].split(":", 1)[0]
+    counts = []
+    for kind in ("Missing", "Unexpected"):
+        found = re.search(kind + r" key\(s\) in state_dict: (.*?)\.\s*(\n|$)", message)
+        if found:
+            counts.append(f"{found.group(1).count(chr(34)) // 2} {kind.lower()} keys")
+    if "size mismatch" in message:
+        counts.append(f"{message.count('size mismatch')} shape mismatches")
+    found = ", ".join(counts) or "weights that do not fit"
+    return (
+        f"`--ckpt_path` must be a checkpoint of the configured model ({model}), got {checkpoint!r}: {found} "
+        "(a checkpoint of the other model class or of another preset?)"
+    )

@@ -74,3 +74,24 @@ def test_given_trainer_defaults_merge_over_the_package_defaults(tmp_path):
         args=["--model=lightning_vtr.models.pix2vox.Pix2VoxPlusPlus", "--trainer.logger=false"],
     )
     assert cli.trainer.max_epochs == 3 and cli.trainer.reload_dataloaders_every_n_epochs == 1
+
+
+def test_a_checkpoint_of_another_preset_gets_one_line_naming_the_model_and_the_keys():
+    """torch's multi-line ``load_state_dict`` error on ``--ckpt_path`` becomes one line with the counts."""
+    import torch
+
+    from lightning_vtr.cli.lightning import _weights_mismatch
+
+    class Small(torch.nn.Module):
+        def __init__(self, width: int) -> None:
+            super().__init__()
+            self.a, self.b = torch.nn.Linear(2, width), torch.nn.Linear(width, 1)
+
+    saved = {k: v for k, v in Small(4).state_dict().items() if k != "b.bias"}
+    saved["c.weight"] = torch.zeros(1)
+    with pytest.raises(RuntimeError) as err:
+        Small(3).load_state_dict(saved)
+    line = _weights_mismatch(str(err.value), "x.ckpt")
+    assert "\n" not in line
+    assert line.startswith("`--ckpt_path` must be a checkpoint of the configured model (Small), got 'x.ckpt': ")
+    assert "1 missing keys, 1 unexpected keys, 3 shape mismatches" in line
