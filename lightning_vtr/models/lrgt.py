@@ -17,10 +17,9 @@ The paper's second reconstruction model, in three parts as published:
    queries read the merged tokens; transposed convolutions upsample ``4^3 -> 8^3 -> 16^3 ->
    32^3``, each stage followed by transformer blocks; a sigmoid gives occupancy probabilities.
 
-Training minimises the Dice loss of the paper. Parameter counts of the ``paper`` preset against
-the released code (instantiated outside this package): encoder 85,830,912 (released: 85,892,352,
-which also builds the signature convolution in the 8 blocks that never use it), merger 14,172,674
-and decoder 29,798,625 (both equal).
+Training minimises the Dice loss of the paper. The ``paper`` preset has 129,802,211 parameters: encoder
+85,830,912, merger 14,172,674, decoder 29,798,625. The encoder builds the signature convolution only in the
+grouping blocks.
 """
 
 from __future__ import annotations
@@ -152,11 +151,10 @@ class LRGTSpec:
 
 
 #: The named presets. ``paper``: the published model (DeiT-B distilled, 224 px, 14x14 tokens, 129.8 M
-#: parameters). ``tiny``: the same architecture at small widths, small enough to train on 2 CPU cores
-#: (64 px); 8x8 tokens with stride 4 keep groups of 4 tokens per view, and the decoder's stages have
-#: widths 16, 32 and 64 (as the paper's 96, 96, 192 follow from 96, 12, 3 channels). Its decoder has one
-#: attention head: attention over the 512 tokens of a stage costs per head, whatever the width, and 4
-#: heads made a training step twice as slow on a CPU.
+#: parameters). ``tiny``: the same architecture at small widths, 64 px input, sized to train on a CPU; 8x8
+#: tokens with stride 4 keep groups of 4 tokens per view, and the decoder's stages have widths 16, 32 and 64
+#: (as the paper's 96, 96, 192 follow from 96, 12, 3 channels). Its decoder has one attention head: the cost
+#: of attention over the 512 tokens of a stage grows with the number of heads, whatever the width.
 LRGT_PRESETS: dict[str, LRGTSpec] = {
     "paper": LRGTSpec(
         image_size=224,
@@ -193,6 +191,11 @@ LRGT_PRESETS: dict[str, LRGTSpec] = {
         upsample_channels=(16, 4, 1),
     ),
 }
+
+
+def _architecture_hparams(spec: LRGTSpec) -> dict[str, object]:
+    """The fields of ``spec`` as :class:`LRGT` hyperparameters: the sequences as lists, as a config writes them."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(spec).items()}
 
 
 def dice_loss(probs: Tensor, target: Tensor, smooth: float = 1.0) -> Tensor:
@@ -292,49 +295,27 @@ class LRGTNetwork(nn.Module):
     ``V >= 1``; the prediction does not depend on the order of the views (grouping attention, the
     merger and the decoder are all permutation-invariant over views, up to ties in the clustering).
 
-    Args: the fields of :class:`LRGTSpec` (checked by it); :meth:`from_spec` builds the network of a spec,
-    e.g. of a preset in :data:`LRGT_PRESETS`.
+    Args:
+        spec: the architecture, e.g. a preset of :data:`LRGT_PRESETS`.
 
     Attributes:
         spec: the :class:`LRGTSpec` of the network.
+        image_size: input side ``H = W`` in pixels.
+        voxel_resolution: ``R`` of the output.
+
+    Raises:
+        TypeError: if ``spec`` is not an :class:`LRGTSpec`.
+
+    Example:
+        >>> net = LRGTNetwork(LRGT_PRESETS["tiny"])
+        >>> net(torch.zeros(2, 3, 3, 64, 64)).shape
+        torch.Size([2, 32, 32, 32])
     """
 
-    def __init__(
-        self,
-        image_size: int,
-        patch_size: int,
-        embed_dim: int,
-        depth: int,
-        num_heads: int,
-        grouping_blocks: Sequence[int],
-        group_stride: int,
-        num_merged_tokens: int,
-        merger_k: int,
-        merger_depth: int,
-        decoder_depth: int,
-        decoder_stage_depth: int,
-        decoder_heads: int,
-        query_grid: int,
-        upsample_channels: Sequence[int],
-    ) -> None:
+    def __init__(self, spec: LRGTSpec) -> None:
         super().__init__()
-        spec = LRGTSpec(
-            image_size=image_size,
-            patch_size=patch_size,
-            embed_dim=embed_dim,
-            depth=depth,
-            num_heads=num_heads,
-            grouping_blocks=grouping_blocks,
-            group_stride=group_stride,
-            num_merged_tokens=num_merged_tokens,
-            merger_k=merger_k,
-            merger_depth=merger_depth,
-            decoder_depth=decoder_depth,
-            decoder_stage_depth=decoder_stage_depth,
-            decoder_heads=decoder_heads,
-            query_grid=query_grid,
-            upsample_channels=upsample_channels,
-        )
+        if not isinstance(spec, LRGTSpec):
+            raise TypeError(f"`spec` must be an LRGTSpec, got {type(spec).__name__} {spec!r}")
         self.spec = spec
         self.encoder = DistilledVisionTransformer(
             spec.image_size, spec.patch_size, spec.embed_dim, spec.depth, spec.num_heads, use_prefix_tokens=False
@@ -359,13 +340,6 @@ class LRGTNetwork(nn.Module):
         )
         self.image_size = spec.image_size
         self.voxel_resolution = self.decoder.resolution
-
-    @classmethod
-    def from_spec(cls, spec: LRGTSpec) -> LRGTNetwork:
-        """The network of ``spec`` (e.g. ``LRGTNetwork.from_spec(LRGT_PRESETS["tiny"])``)."""
-        if not isinstance(spec, LRGTSpec):
-            raise TypeError(f"`spec` must be an LRGTSpec, got {type(spec).__name__} {spec!r}")
-        return cls(**dataclasses.asdict(spec))
 
     def load_pretrained_encoder(self, path_or_state_dict) -> None:
         """Load a timm-format DeiT (distilled) checkpoint into the encoder (see :func:`load_timm_deit`).
@@ -459,25 +433,10 @@ class LRGT(VoxelReconstructionModule):
         categories: list[str] | None = None,
     ) -> None:
         check_choice("preset", preset, LRGT_PRESETS)
-        overrides = dict(
-            image_size=image_size,
-            patch_size=patch_size,
-            embed_dim=embed_dim,
-            depth=depth,
-            num_heads=num_heads,
-            grouping_blocks=grouping_blocks,
-            group_stride=group_stride,
-            num_merged_tokens=num_merged_tokens,
-            merger_k=merger_k,
-            merger_depth=merger_depth,
-            decoder_depth=decoder_depth,
-            decoder_stage_depth=decoder_stage_depth,
-            decoder_heads=decoder_heads,
-            query_grid=query_grid,
-            upsample_channels=upsample_channels,
-        )
-        spec = dataclasses.replace(LRGT_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None})
-        network = LRGTNetwork.from_spec(spec)
+        arguments = locals()
+        overrides = {f.name: arguments[f.name] for f in dataclasses.fields(LRGTSpec) if arguments[f.name] is not None}
+        spec = dataclasses.replace(LRGT_PRESETS[preset], **overrides)
+        network = LRGTNetwork(spec)
         super().__init__(
             image_size=spec.image_size,
             num_views=num_views,
@@ -487,43 +446,10 @@ class LRGT(VoxelReconstructionModule):
             log_sheets=log_sheets,
         )
         check_float("lr", lr, minimum=0.0, min_open=True)
-        # save_hyperparameters() reads the arguments' current values, so resolve them first: the
-        # checkpoint then describes the architecture fully, and the DataModule's `image_size`
-        # hparam agrees with ours when Lightning merges the two for logging.
-        (
-            image_size,
-            patch_size,
-            embed_dim,
-            depth,
-            num_heads,
-            group_stride,
-            num_merged_tokens,
-            merger_k,
-            merger_depth,
-            decoder_depth,
-            decoder_stage_depth,
-            decoder_heads,
-            query_grid,
-        ) = (
-            getattr(spec, k)
-            for k in (
-                "image_size",
-                "patch_size",
-                "embed_dim",
-                "depth",
-                "num_heads",
-                "group_stride",
-                "num_merged_tokens",
-                "merger_k",
-                "merger_depth",
-                "decoder_depth",
-                "decoder_stage_depth",
-                "decoder_heads",
-                "query_grid",
-            )
-        )
-        grouping_blocks, upsample_channels = list(spec.grouping_blocks), list(spec.upsample_channels)
         self.save_hyperparameters()
+        # Record the resolved architecture in place of the `None` overrides: the checkpoint then describes it
+        # fully, and the DataModule's `image_size` hparam agrees with ours when Lightning merges the two for logging.
+        self.save_hyperparameters({**self.hparams, **_architecture_hparams(spec)})
         self.spec = spec
         self.network = network
         # A checkpoint being restored holds the encoder's weights: the file need not exist on this machine.

@@ -150,7 +150,7 @@ def test_dice_loss_hand_computed():
 
 def test_network_shapes_any_number_of_views_and_view_order_invariance():
     torch.manual_seed(0)
-    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"]).eval()
+    net = LRGTNetwork(LRGT_PRESETS["tiny"]).eval()
     for block in net.grouping_blocks:
         torch.nn.init.normal_(net.encoder.blocks[block].attn.signature.weight, std=0.1)
     images = torch.randn(2, 3, 3, 64, 64)
@@ -172,7 +172,7 @@ def test_network_shapes_any_number_of_views_and_view_order_invariance():
 def test_fewer_tokens_than_clusters_still_reconstruct():
     # One 8x8-token view and 100 clusters: every token is its own cluster and the decoder reads 64 tokens.
     torch.manual_seed(0)
-    net = LRGTNetwork.from_spec(dataclasses.replace(LRGT_PRESETS["tiny"], num_merged_tokens=100)).eval()
+    net = LRGTNetwork(dataclasses.replace(LRGT_PRESETS["tiny"], num_merged_tokens=100)).eval()
     images = torch.randn(2, 1, 3, 64, 64)
     with torch.no_grad():
         assert net.merger(net.encode(images)).shape == (2, 64, 64)
@@ -190,7 +190,7 @@ RELEASED_PARAMETERS = {"encoder": 85_892_352, "merger": 14_172_674, "decoder": 2
 
 def test_paper_preset_parameter_counts_per_module_match_the_released_code():
     with torch.device("meta"):
-        net = LRGTNetwork.from_spec(LRGT_PRESETS["paper"])
+        net = LRGTNetwork(LRGT_PRESETS["paper"])
         out = net(torch.empty(2, 3, 3, 224, 224))
     counts = {name: sum(p.numel() for p in getattr(net, name).parameters()) for name in RELEASED_PARAMETERS}
     assert counts == {"encoder": 85_892_352 - 8 * 7_680, "merger": 14_172_674, "decoder": 29_798_625}
@@ -203,7 +203,7 @@ def test_paper_preset_parameter_counts_per_module_match_the_released_code():
 
 def test_encoder_drops_the_prefix_tokens_but_keeps_them_loadable():
     torch.manual_seed(0)
-    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"]).eval()
+    net = LRGTNetwork(LRGT_PRESETS["tiny"]).eval()
     images = torch.randn(2, 3, 3, 64, 64)
     with torch.no_grad():
         tokens = net.encode(images)
@@ -237,7 +237,7 @@ def test_every_trainable_parameter_gets_a_gradient():
 
 def test_pretrained_encoder_loads_into_grouping_blocks():
     preset = LRGT_PRESETS["tiny"]
-    net = LRGTNetwork.from_spec(preset)
+    net = LRGTNetwork(preset)
     own = {k: v for k, v in net.encoder.state_dict().items() if ".signature." not in k}
     state = {k: torch.randn_like(v) for k, v in own.items()} | {"head.weight": torch.zeros(3, 64)}
     net.load_pretrained_encoder(state)
@@ -250,7 +250,7 @@ def test_pretrained_encoder_loads_into_grouping_blocks():
 
 def test_pretrained_encoder_from_a_url_and_a_checkpoint_that_loads_without_the_file(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
-    net = LRGTNetwork.from_spec(LRGT_PRESETS["tiny"])
+    net = LRGTNetwork(LRGT_PRESETS["tiny"])
     own = {k: v for k, v in net.encoder.state_dict().items() if ".signature." not in k}
     torch.manual_seed(3)
     state = {k: torch.randn_like(v) for k, v in own.items()}
@@ -300,7 +300,7 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
     from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [16, 4, 1]})
     assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (16, 4, 1)
     assert from_lists == tiny and hash(from_lists) == hash(tiny)
-    assert LRGTNetwork(**fields).spec == tiny
+    assert LRGTNetwork(LRGTSpec(**fields)).spec == tiny
 
 
 @pytest.mark.parametrize(
@@ -336,7 +336,7 @@ def test_model_and_network_are_built_from_the_spec():
     tiny = LRGT_PRESETS["tiny"]
     model = LRGT(preset="tiny")
     assert model.spec == tiny and model.network.spec == tiny
-    assert LRGTNetwork.from_spec(tiny).spec == tiny
+    assert LRGTNetwork(tiny).spec == tiny
     small = LRGT(preset="tiny", image_size=32, patch_size=4, upsample_channels=[16, 8])
     assert small.spec == dataclasses.replace(tiny, image_size=32, patch_size=4, upsample_channels=(16, 8))
     assert (small.spec.grid_size, small.spec.voxel_resolution, small.voxel_resolution) == (8, 16, 16)
@@ -347,7 +347,7 @@ def test_model_and_network_are_built_from_the_spec():
     with pytest.raises(ValueError, match=r"`lr` must be a number > 0, got 0.0"):
         LRGT(preset="tiny", lr=0.0)
     with pytest.raises(TypeError, match=r"`spec` must be an LRGTSpec, got dict"):
-        LRGTNetwork.from_spec(dataclasses.asdict(tiny))
+        LRGTNetwork(dataclasses.asdict(tiny))
 
 
 def _shapes(r: int) -> torch.Tensor:
@@ -439,3 +439,70 @@ def test_checkpoint_round_trip_records_the_resolved_architecture(tmp_path):
     model.eval(), restored.eval()
     with torch.no_grad():
         assert torch.equal(model.predict_voxels(images), restored.predict_voxels(images))
+
+
+#: The ``hyper_parameters`` a Trainer stored for ``LRGT(preset="tiny", image_size=32, patch_size=4, embed_dim=32,
+#: num_heads=2, upsample_channels=[16, 8])`` when ``LRGTNetwork`` took the 15 spec fields as arguments: every
+#: architecture field resolved, the sequences as lists.
+SAVED_HPARAMS = {
+    "preset": "tiny",
+    "num_views": 3,
+    "image_size": 32,
+    "patch_size": 4,
+    "embed_dim": 32,
+    "depth": 4,
+    "num_heads": 2,
+    "grouping_blocks": [1, 3],
+    "group_stride": 4,
+    "num_merged_tokens": 64,
+    "merger_k": 5,
+    "merger_depth": 2,
+    "decoder_depth": 1,
+    "decoder_stage_depth": 2,
+    "decoder_heads": 1,
+    "query_grid": 4,
+    "upsample_channels": [16, 8],
+    "pretrained_encoder": None,
+    "lr": 0.0001,
+    "weight_decay": 0.01,
+    "milestones": None,
+    "gamma": 0.1,
+    "validation_fscore": True,
+    "log_sheets": 0,
+    "categories": None,
+}
+#: sha256 of the ``"name:(shape)"`` lines of that checkpoint's state dict (186 tensors), in state-dict order.
+SAVED_STATE_LAYOUT = "e4f2b93656aab7f4341ffb26055725f0b7b0556886f6bbe58ed5c30111897a21"
+
+
+def test_checkpoints_saved_with_the_spec_fields_as_hparams_load_and_predict_the_same(tmp_path):
+    import hashlib
+
+    overrides = {
+        k: SAVED_HPARAMS[k] for k in ("image_size", "patch_size", "embed_dim", "num_heads", "upsample_channels")
+    }
+    torch.manual_seed(0)
+    model = LRGT(preset="tiny", **overrides).eval()
+    # The state dict keeps its layout and the hyperparameters their form ...
+    state = model.state_dict()
+    layout = "\n".join(f"{k}:{tuple(v.shape)}" for k, v in state.items())
+    assert (len(state), hashlib.sha256(layout.encode()).hexdigest()) == (186, SAVED_STATE_LAYOUT)
+    assert dict(model.hparams) == SAVED_HPARAMS and list(model.hparams) == list(SAVED_HPARAMS)
+    # ... so a checkpoint of that form loads and predicts exactly what the saved model did.
+    path = tmp_path / "lrgt.ckpt"
+    torch.save(
+        {
+            "state_dict": state,
+            "hyper_parameters": dict(SAVED_HPARAMS),
+            "hparams_name": "kwargs",
+            "pytorch-lightning_version": "2.5.0",
+        },
+        path,
+    )
+    restored = LRGT.load_from_checkpoint(path).eval()
+    assert restored.spec == dataclasses.replace(
+        LRGT_PRESETS["tiny"], image_size=32, patch_size=4, embed_dim=32, num_heads=2, upsample_channels=(16, 8)
+    )
+    images = torch.randn(2, 3, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(restored.predict_voxels(images), model.predict_voxels(images))
