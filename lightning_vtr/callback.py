@@ -4,6 +4,8 @@ synthesize them and train on them next epoch.
 
 from __future__ import annotations
 
+import ast
+import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +22,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from lightning_vtr.data.dataset import GeneratedSample
-from lightning_vtr.protocol import check_reconstruction_model
+from lightning_vtr.protocol import check_augmentable_datamodule, check_reconstruction_model
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities, check_type
@@ -28,9 +30,9 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int,
 __all__ = ["ErrorGuidedViewAugmentation"]
 
 _STATE_VERSION = 1
+#: The ``version`` of the per-selection records (``<log dir>/vtr_selection/*.json``).
+RECORD_VERSION = 1
 _NOTHING_GENERATED = -2
-# What the callback calls on the datamodule (VTRDataModule has all of it).
-_DATAMODULE_API = ("split_records", "eval_item", "object_views", "add_samples", "transform")
 # Returning logits instead of probabilities is the usual way a model breaks the protocol.
 _PROBABILITIES_HINT = (
     "did predict_voxels return logits? apply torch.sigmoid to them (the callback thresholds occupancy "
@@ -55,8 +57,15 @@ def _generator(*key: int) -> torch.Generator:
 
 
 def _reload_train_dataloader(trainer: L.Trainer) -> None:
-    # Lightning has no public "reload now": mark the last reload as long ago, and the fit loop rebuilds the
-    # train loader when the epoch starts (as reload_dataloaders_every_n_epochs does between epochs).
+    """Have the fit loop rebuild the train loader when the current epoch starts.
+
+    The one place the callback touches a private attribute of Lightning: Lightning has no public "reload
+    now". ``FitLoop.setup_data`` rebuilds the train loader when ``current_epoch -
+    _last_train_dl_reload_epoch >= reload_dataloaders_every_n_epochs`` and then sets the attribute to the
+    current epoch; marking the last reload as long ago makes the loop rebuild it before the epoch's first
+    batch, as ``reload_dataloaders_every_n_epochs=1`` does between epochs. ``tests/test_callback.py`` checks
+    that the attribute exists and has these semantics, so a Lightning release that changes it fails there.
+    """
     loop = trainer.fit_loop
     if hasattr(loop, "_last_train_dl_reload_epoch"):
         loop._last_train_dl_reload_epoch = float("-inf")
@@ -68,11 +77,15 @@ def _reload_train_dataloader(trainer: L.Trainer) -> None:
 
 
 def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
-    if trainer.world_size == 1 or not torch.distributed.is_available() or not torch.distributed.is_initialized():
+    """Every process's ``obj`` (any picklable object), in global-rank order, on every process.
+
+    ``Strategy.all_gather`` gathers tensors of one shape only; objects go through one
+    ``Strategy.broadcast`` per rank (world sizes here are small, the objects a few selections).
+    """
+    if trainer.world_size == 1:
         return [obj]
-    out: list[Any] = [None] * trainer.world_size
-    torch.distributed.all_gather_object(out, obj)
-    return out
+    rank = trainer.global_rank
+    return [trainer.strategy.broadcast(obj if src == rank else None, src=src) for src in range(trainer.world_size)]
 
 
 def _trainer_shows_progress(trainer: L.Trainer) -> bool:
@@ -81,11 +94,8 @@ def _trainer_shows_progress(trainer: L.Trainer) -> bool:
 
 
 def _broadcast(trainer: L.Trainer, obj: Any) -> Any:
-    if trainer.world_size == 1 or not torch.distributed.is_available() or not torch.distributed.is_initialized():
-        return obj
-    box = [obj]
-    torch.distributed.broadcast_object_list(box, src=0)
-    return box[0]
+    """Global rank 0's ``obj`` on every process."""
+    return obj if trainer.world_size == 1 else trainer.strategy.broadcast(obj, src=0)
 
 
 class ErrorGuidedViewAugmentation(L.Callback):
@@ -261,7 +271,37 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     @property
     def state_key(self) -> str:
-        return self._generate_state_key(selector=type(self.selector).__name__, seed=self.seed)
+        """The key of this callback's state in a checkpoint: the class and the selector's class.
+
+        The seed is not part of it, so a run resumed with another seed restores the state (and warns that
+        later generations differ); checkpoints whose key also names the seed are read too.
+        """
+        return self._generate_state_key(selector=type(self.selector).__name__)
+
+    def _seeded_state_key(self, states: dict[Any, Any]) -> Any:
+        """The key of this callback's state in ``states`` as saved with the seed in the key, or ``None``."""
+        prefix = type(self).__qualname__
+        for key in states:
+            if not isinstance(key, str) or not key.startswith(prefix + "{"):
+                continue
+            try:
+                fields = ast.literal_eval(key[len(prefix) :])
+            except (ValueError, SyntaxError):
+                continue
+            if isinstance(fields, dict) and set(fields) == {"selector", "seed"}:
+                if fields["selector"] == type(self.selector).__name__:
+                    return key
+        return None
+
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        # Lightning restores the state saved under `state_key`; a checkpoint written when the key named the
+        # seed has it under the old key, which is read here.
+        states = checkpoint.get("callbacks") or {}
+        if self.state_key in states or self._legacy_state_key in states:
+            return
+        key = self._seeded_state_key(states)
+        if key is not None:
+            self.load_state_dict(copy.deepcopy(states[key]))
 
     # ------------------------------------------------------------------ setup checks
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
@@ -274,13 +314,15 @@ class ErrorGuidedViewAugmentation(L.Callback):
                 f"(got {trainer.reload_dataloaders_every_n_epochs})."
             )
         dm = trainer.datamodule
-        missing = [name for name in _DATAMODULE_API if dm is None or not hasattr(dm, name)]
-        if missing:
+        if dm is None:
             raise MisconfigurationException(
-                f"ErrorGuidedViewAugmentation needs a datamodule with {', '.join(_DATAMODULE_API)}; "
-                f"{'no datamodule was given' if dm is None else type(dm).__name__ + ' lacks ' + ', '.join(missing)}. "
-                "Use lightning_vtr.data.VTRDataModule (or implement these methods) and pass it as `datamodule=`."
+                "ErrorGuidedViewAugmentation needs a datamodule satisfying lightning_vtr.protocol.AugmentableDataModule, "
+                "but no datamodule was given: pass lightning_vtr.data.VTRDataModule (or your own) as `datamodule=`."
             )
+        try:
+            check_augmentable_datamodule(dm)
+        except TypeError as err:
+            raise MisconfigurationException(f"ErrorGuidedViewAugmentation: {err}") from err
         # A synthesizer that cannot serve the training objects (rendering without meshes) fails now, not after epoch 0.
         self.synthesizer.check_serves(dm.split_records("train"), view_set=self.source_view_set)
         try:
@@ -481,9 +523,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
             self.selector.load_state_dict(payload[1])
         return payload[0]
 
-    @staticmethod
-    def _selected(record: Any, index: int, views: Tensor, predicted: Tensor, target: Tensor) -> _Selected:
-        error = ((predicted >= 0.4).float() != target).float().mean().item()
+    def _selected(self, record: Any, index: int, views: Tensor, predicted: Tensor, target: Tensor) -> _Selected:
+        # the object's error at the selector's threshold, the one its error volume binarises at
+        error = ((predicted >= self.selector.threshold).float() != target).float().mean().item()
         return _Selected(index, record.category, record.object_id, views.detach().cpu().numpy(), error)
 
     def _request(self, dm: Any, record: Any, targets: Tensor | None = None) -> SynthesisRequest:
@@ -555,12 +597,11 @@ class ErrorGuidedViewAugmentation(L.Callback):
             GeneratedSample(s.category, s.object_id, img, np.asarray(vs, dtype=np.float64), epoch)
             for s, vs, img in zip(selected, view_sets, images)
         ]
-        if self.max_samples is not None:
-            dm.max_generated = self.max_samples
-        dm.add_samples(samples)
+        dm.add_samples(samples, max_total=self.max_samples)
         trainer.strategy.barrier("ErrorGuidedViewAugmentation.add_samples")
         self.last_epoch = epoch
         record = {
+            "version": RECORD_VERSION,
             "epoch": epoch,
             "objects": [f"{s.category}/{s.object_id}" for s in selected],
             "selected": [s.viewpoints.round(3).tolist() for s in selected],

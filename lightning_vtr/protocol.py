@@ -1,8 +1,9 @@
-"""The contract between a reconstruction model and the view-augmentation callback.
+"""The contracts of the view-augmentation callback: with the model it trains and the datamodule it feeds.
 
-Any ``LightningModule`` that has these attributes and this method can be trained with
-:class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`; the package's own Pix2Vox++ and
-LRGT implement it, and a user's model can too (no inheritance needed).
+Any ``LightningModule`` that has the attributes and method of :class:`ReconstructionModel` can be trained
+with :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`; the package's own Pix2Vox++ and LRGT
+implement it, and a user's model can too (no inheritance needed). Likewise any ``LightningDataModule`` with
+the members of :class:`AugmentableDataModule` can serve it; :class:`~lightning_vtr.data.VTRDataModule` does.
 
 Batches (what :class:`~lightning_vtr.data.VTRDataModule` yields) are dictionaries:
 
@@ -15,15 +16,29 @@ Batches (what :class:`~lightning_vtr.data.VTRDataModule` yields) are dictionarie
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+import inspect
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:  # this module stays light: dataset build workers import VIEW_SETS without torch
+    import numpy as np
     from torch import Tensor
 
-__all__ = ["VIEW_SETS", "ReconstructionModel", "check_reconstruction_model"]
+__all__ = [
+    "DEFAULT_THRESHOLD",
+    "VIEW_SETS",
+    "AugmentableDataModule",
+    "ReconstructionModel",
+    "check_augmentable_datamodule",
+    "check_reconstruction_model",
+]
 
 #: The paper's three view sets, in table order: training views (a fixed elevation) and the two test sets.
 VIEW_SETS: tuple[str, ...] = ("aligned", "hemispherical", "spherical")
+
+#: The occupancy threshold: a voxel predicted with probability ``>= DEFAULT_THRESHOLD`` is occupied. The
+#: default binarisation of error volumes, selections, IoU/F-score, exports and figures (the paper's tables use it).
+DEFAULT_THRESHOLD: float = 0.4
 
 
 @runtime_checkable
@@ -55,3 +70,108 @@ def check_reconstruction_model(model: object) -> None:
             f"{type(model).__name__} does not satisfy lightning_vtr.ReconstructionModel: missing {', '.join(missing)}. "
             "Add these attributes and method (see lightning_vtr.protocol)."
         )
+
+
+@runtime_checkable
+class AugmentableDataModule(Protocol):
+    """What :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` reads, writes and calls on a datamodule.
+
+    The callback only calls these members; it never assigns an attribute of the datamodule. Records are
+    objects with ``category``, ``object_id``, ``mesh_path`` (``None`` without a mesh) and ``views``, a mapping
+    from view-set name to ``(image paths, (V, 2) viewpoints in degrees)``, as
+    :class:`~lightning_vtr.data.format.ObjectRecord` has.
+
+    Attributes:
+        transform: turns ``(T, H, W, 4)`` uint8 RGBA images into model input ``(T, 3, H, W)`` float (the
+            evaluation transform). An optional ``transform.normalize`` names its normalisation for figures.
+        generated_samples: index entries (dicts with ``"category"``, ``"object_id"``, ``"epoch"``, ...) of
+            the generated samples served now; read for the ``vtr/samples_total`` value.
+
+    Example:
+        >>> from lightning_vtr.protocol import AugmentableDataModule, check_augmentable_datamodule
+        >>> check_augmentable_datamodule(object())  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        TypeError: object does not satisfy lightning_vtr.AugmentableDataModule: missing split_records(split), ...
+    """
+
+    transform: Callable[..., Any]
+
+    @property
+    def generated_samples(self) -> list[dict]:
+        """Index entries of the generated samples served now."""
+        ...
+
+    def split_records(self, split: str) -> Sequence[Any]:
+        """The records of one split (``"train"``), in an order that is the same on every process and run."""
+        ...
+
+    def record(self, category: str, object_id: str) -> Any:
+        """The record of one object."""
+        ...
+
+    def eval_item(self, record: Any, view_set: str = "aligned", seed: int = 0) -> dict:
+        """A model-ready item of ``record``: ``{"images": (V, 3, H, W), "voxels": (R, R, R), "viewpoints": (V, 2),
+        "category", "object_id"}``, its views a fixed function of ``seed``."""
+        ...
+
+    def object_views(
+        self, record: Any, view_set: str = "aligned", indices: Sequence[int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(images (V, H, W, 4) uint8, viewpoints (V, 2) degrees)`` of one object's view set."""
+        ...
+
+    def add_samples(self, samples: Sequence[Any], *, max_total: int | None = None) -> list[dict]:
+        """Store generated samples, serve them from the next train loader on, keep at most ``max_total``
+        (the newest; ``None``: all). Called with the same samples in the same order on every process."""
+        ...
+
+
+#: The members :func:`check_augmentable_datamodule` looks for, as its message names them.
+_DATAMODULE_MEMBERS: dict[str, str] = {
+    "split_records": "split_records(split)",
+    "record": "record(category, object_id)",
+    "eval_item": "eval_item(record, view_set, seed)",
+    "object_views": "object_views(record, view_set, indices)",
+    "add_samples": "add_samples(samples, *, max_total)",
+    "transform": "transform",
+    "generated_samples": "generated_samples",
+}
+_DATAMODULE_METHODS = ("split_records", "record", "eval_item", "object_views", "add_samples", "transform")
+
+
+def check_augmentable_datamodule(datamodule: object) -> None:
+    """Check that ``datamodule`` has every member of :class:`AugmentableDataModule`.
+
+    Args:
+        datamodule: the datamodule to check.
+
+    Raises:
+        TypeError: naming every missing (or non-callable) member at once, and ``add_samples`` when it takes
+            no ``max_total`` keyword.
+
+    Example:
+        >>> from lightning_vtr.data import VTRDataModule  # doctest: +SKIP
+        >>> check_augmentable_datamodule(VTRDataModule())  # doctest: +SKIP
+    """
+    missing = []
+    for name, shown in _DATAMODULE_MEMBERS.items():
+        value = getattr(datamodule, name, None)
+        if value is None or (name in _DATAMODULE_METHODS and not callable(value)):
+            missing.append(shown)
+        elif name == "add_samples" and not _accepts_keyword(value, "max_total"):
+            missing.append(f"{shown} (its add_samples takes no max_total)")
+    if missing:
+        raise TypeError(
+            f"{type(datamodule).__name__} does not satisfy lightning_vtr.AugmentableDataModule: missing "
+            f"{', '.join(missing)}. Use lightning_vtr.data.VTRDataModule or add these members "
+            "(see lightning_vtr.protocol.AugmentableDataModule)."
+        )
+
+
+def _accepts_keyword(function: Callable[..., Any], name: str) -> bool:
+    try:
+        parameters = inspect.signature(function).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin): assume it does
+        return True
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,6 @@ from lightning_vtr.data.dataset import (
 from lightning_vtr.data.format import ObjectRecord
 from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.utils.deprecation import renamed_argument
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["VIEW_SETS", "VTRDataModule"]
@@ -110,13 +108,13 @@ class VTRDataModule(L.LightningDataModule):
         test_view_sets: view sets served by ``test_dataloader`` (one loader each, in this order).
         categories: restrict to these categories (``None``: all).
         generated_dir: where generated samples are written (default ``<trainer log dir>/vtr_generated``).
-        max_generated: keep at most this many generated samples (oldest dropped first); ``None``: all.
+        max_generated: removed; must be ``None``. The cap on generated samples belongs to the caller of
+            :meth:`add_samples` (its ``max_total``): ``ErrorGuidedViewAugmentation(max_samples=...)``.
         seed: fixes evaluation view choices.
         test_repeats: items per test object, each with its own fixed choice of ``num_views`` views (the same
             for every model tested with this ``seed``); test metrics average over all of them, every object
             weighing the same. More repeats cut the variance of a test mean without more objects.
         embedded: build options for the embedded dataset (see ``lightning_vtr.data.builder.build_dataset``).
-        n_views: deprecated alias of ``num_views``.
         verify: at :meth:`setup`, read every image and voxel file of the dataset once
             (:func:`~lightning_vtr.data.verify.verify_dataset`) and raise one
             :class:`~lightning_vtr.data.format.DatasetFormatError` listing every missing, unreadable or
@@ -131,6 +129,7 @@ class VTRDataModule(L.LightningDataModule):
 
     Raises:
         DatasetFormatError: at :meth:`setup`, with ``verify=True``, when the dataset has problems.
+        ValueError: on invalid arguments, and for any ``max_generated`` but ``None`` (naming its replacement).
 
     Example:
         >>> dm = VTRDataModule(num_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
@@ -156,7 +155,6 @@ class VTRDataModule(L.LightningDataModule):
         seed: int = 0,
         test_repeats: int = 1,
         embedded: dict[str, Any] | None = None,
-        n_views: int | None = None,
         background_range: Sequence[int] | Sequence[Sequence[int]] | None = None,
         recipe: ImageRecipe | str | Mapping[str, Any] = "plain",
         verify: bool = False,
@@ -164,8 +162,6 @@ class VTRDataModule(L.LightningDataModule):
         test_split: str = "test",
     ) -> None:
         super().__init__()
-        # Resolved before save_hyperparameters(), which reads the arguments' current values.
-        num_views = renamed_argument("n_views", n_views, "num_views", num_views)
         if root is not None and shapenet_rendering is not None:
             raise ValueError(
                 "`shapenet_rendering` must be None when `root` (a ShapeNet-VTR directory) is given, "
@@ -176,7 +172,11 @@ class VTRDataModule(L.LightningDataModule):
         check_int("num_workers", num_workers, minimum=0)
         check_int("test_repeats", test_repeats, minimum=1)
         if max_generated is not None:
-            check_int("max_generated", max_generated, minimum=0)
+            raise ValueError(
+                f"`max_generated` must be None (the datamodule no longer caps generated samples), got "
+                f"{max_generated!r}; cap them with `ErrorGuidedViewAugmentation(max_samples=...)`, or "
+                "`add_samples(samples, max_total=...)` when adding samples yourself"
+            )
         if shapenet_rendering is not None:
             check_type("shapenet_rendering", shapenet_rendering, Mapping, "dict")
             missing = set(_SHAPENET_RENDERING_KEYS) - set(shapenet_rendering)
@@ -193,7 +193,7 @@ class VTRDataModule(L.LightningDataModule):
                 "`verify` must be False with `shapenet_rendering` (it checks ShapeNet-VTR directories), "
                 f"got verify={verify!r}"
             )
-        self.save_hyperparameters(ignore=["n_views"])
+        self.save_hyperparameters(ignore=["max_generated"])
         if isinstance(recipe, ImageRecipe):
             self.hparams["recipe"] = dataclasses.asdict(recipe)
         self.root = Path(root).expanduser() if root is not None else None
@@ -211,7 +211,6 @@ class VTRDataModule(L.LightningDataModule):
         self.num_workers = int(num_workers)
         self.test_view_sets = tuple(test_view_sets)
         self._category_filter = tuple(categories) if categories is not None else None
-        self.max_generated = max_generated
         self.seed = int(seed)
         self.test_repeats = int(test_repeats)
         self.embedded = dict(embedded or {})
@@ -222,16 +221,6 @@ class VTRDataModule(L.LightningDataModule):
         self._records: list[ObjectRecord] | None = None
         self._generated: list[dict] = []
         self._next_sample_id = 0
-
-    @property
-    def n_views(self) -> int:
-        """Deprecated alias of :attr:`num_views`."""
-        warnings.warn(
-            "`VTRDataModule.n_views` was renamed `num_views`; the old name will be removed in 0.3.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.num_views
 
     # ------------------------------------------------------------------ data discovery
     def prepare_data(self) -> None:
@@ -418,6 +407,11 @@ class VTRDataModule(L.LightningDataModule):
         }
 
     def record(self, category: str, object_id: str) -> ObjectRecord:
+        """The record of one object.
+
+        Raises:
+            KeyError: no such object (after the ``categories`` filter).
+        """
         return self._by_key[(category, object_id)]
 
     @property
@@ -425,15 +419,30 @@ class VTRDataModule(L.LightningDataModule):
         """Index entries of the generated samples currently served (a copy)."""
         return [dict(e) for e in self._generated]
 
-    def add_samples(self, samples: Sequence[GeneratedSample]) -> list[dict]:
+    def add_samples(self, samples: Sequence[GeneratedSample], *, max_total: int | None = None) -> list[dict]:
         """Persist generated view sets and serve them from the next ``train_dataloader()`` on.
 
         Every process must call this with the same samples in the same order (the callback does), so
         every rank's dataset stays identical. Writing is atomic and idempotent per file, so processes
         sharing a filesystem may write the same sample concurrently.
 
-        Returns the new index entries.
+        Args:
+            samples: the new samples, in the order they get ids.
+            max_total: after adding, keep only the newest ``max_total`` generated samples (the oldest are no
+                longer served; their files stay); ``None``: keep all.
+
+        Returns:
+            The new index entries (those of samples dropped at once by ``max_total`` included).
+
+        Raises:
+            KeyError: a sample of an object the datamodule does not have.
+            ValueError: ``max_total`` is negative.
+
+        Example:
+            >>> dm.add_samples(samples, max_total=100)  # doctest: +SKIP
         """
+        if max_total is not None:
+            check_int("max_total", max_total, minimum=0)
         self.setup()
         directory = self.generated_dir
         if not getattr(self, "_stale_removed", False):  # a killed run's half-written files, once per run
@@ -451,8 +460,8 @@ class VTRDataModule(L.LightningDataModule):
             self._next_sample_id += 1
             new.append(entry)
         self._generated.extend(new)
-        if self.max_generated is not None and len(self._generated) > self.max_generated:
-            self._generated = self._generated[len(self._generated) - self.max_generated :]
+        if max_total is not None and len(self._generated) > max_total:
+            self._generated = self._generated[len(self._generated) - max_total :]
         if new and (self.trainer is None or self.trainer.is_global_zero):
             dump_index(self._generated, directory / "index.json")
         return new

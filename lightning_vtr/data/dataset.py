@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +20,6 @@ from torch.utils.data import Dataset
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import ObjectRecord
 from lightning_vtr.data.transforms import IMAGENET_MEAN, IMAGENET_STD, ImageTransform
-from lightning_vtr.utils.deprecation import renamed_argument
 from lightning_vtr.utils.io import atomic_open, atomic_write
 from lightning_vtr.utils.validation import check_int
 
@@ -85,7 +83,6 @@ class VTRDataset(Dataset):
         train: draw views afresh every epoch (else a fixed choice per item).
         seed: seeds the view choice and the augmentation.
         repeats: items per object, each with its own fixed view choice; must be 1 in training.
-        n_views: deprecated alias of ``num_views``.
     """
 
     def __init__(
@@ -98,9 +95,7 @@ class VTRDataset(Dataset):
         train: bool = False,
         seed: int = 0,
         repeats: int = 1,
-        n_views: int | None = None,
     ) -> None:
-        num_views = renamed_argument("n_views", n_views, "num_views", num_views)
         self.records = list(records)
         self.view_set = view_set
         self.num_views = check_int("num_views", num_views, minimum=1)
@@ -125,16 +120,6 @@ class VTRDataset(Dataset):
                     f"`num_views` must be at most the number of views of each object, got {self.num_views}; "
                     f"object {rec.category}/{rec.object_id} has {available} in {view_set!r}"
                 )
-
-    @property
-    def n_views(self) -> int:
-        """Deprecated alias of :attr:`num_views`."""
-        warnings.warn(
-            "`VTRDataset.n_views` was renamed `num_views`; the old name will be removed in 0.3.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.num_views
 
     def __len__(self) -> int:
         return len(self.records) * self.repeats

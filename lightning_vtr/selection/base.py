@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_probabilities
 
 #: The hint of a model whose predictions (queried by VIAT and the input score) are not probabilities.
@@ -113,6 +114,9 @@ class ViewSelector(abc.ABC):
 
     #: Number of viewpoints returned per object.
     num_views: int = 3
+    #: Occupancy threshold of the predictions: selectors that binarise them (error-guided, MVTN) set it, and
+    #: the callback measures each object's voxel error (``mean_error``, ``generate_for="error"``) at it.
+    threshold: float = DEFAULT_THRESHOLD
     #: Whether the callback should store selections in a per-category viewpoint pool and train on
     #: view sets drawn from it (the paper's error-guided method), rather than on the selections directly.
     uses_pool: bool = False

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import candidate_viewpoints, check_bin_interval, sample_uniform_viewpoints
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories, view_set_losses
 from lightning_vtr.selection.diversity import choose_bins
 from lightning_vtr.selection.projection import (
@@ -96,7 +97,7 @@ class ErrorGuidedSelector(ViewSelector):
         k: bin interval ``K`` in degrees; must divide 180 (30 gives 72 candidate views).
         num_views: ``n``, views selected per object (the number of input views, 3).
         score: ``"paper"``, ``"released"``, ``"visible"`` or ``"input"`` (see above).
-        threshold: binarisation threshold of the prediction.
+        threshold: binarisation threshold of the prediction (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
         min_separation: ``None`` for no suppression; else the angle in degrees within which a chosen bin
             (or its antipode) forbids other bins. ``0`` forbids only the antipode.
         temperature: ``None`` for the hard top ``n``; else :math:`\tau > 0` of the tempered sampling.
@@ -136,7 +137,7 @@ class ErrorGuidedSelector(ViewSelector):
         k: int = 30,
         num_views: int = 3,
         score: Literal["paper", "released", "visible", "input"] = "paper",
-        threshold: float = 0.4,
+        threshold: float = DEFAULT_THRESHOLD,
         min_separation: float | None = None,
         temperature: float | None = None,
         mode: Literal["binary", "soft"] | None = None,

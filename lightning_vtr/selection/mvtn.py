@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from lightning_vtr.geometry import wrap_yaw
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
 from lightning_vtr.selection.differentiable_projection import soft_error_projection
 from lightning_vtr.selection.projection import check_volume_pair, error_volume
@@ -76,7 +77,8 @@ class MVTNSelector(ViewSelector):
         steps: Adam steps per ``select`` call.
         lr: Adam learning rate.
         input: ``"error"`` (the error volume) or ``"predicted"`` (the prediction) fed to the network.
-        threshold: binarisation threshold of the prediction for the error volume (the paper's 0.4).
+        threshold: binarisation threshold of the prediction for the error volume
+            (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
         density: sharpness of the soft projection (opacity per voxel of error crossed).
         image_size: side of the projected maps (default ``R``).
         width: channels of the first convolution; hidden: width of the MLP.
@@ -106,7 +108,7 @@ class MVTNSelector(ViewSelector):
         steps: int = 10,
         lr: float = 1e-2,
         input: Literal["error", "predicted"] = "error",
-        threshold: float = 0.4,
+        threshold: float = DEFAULT_THRESHOLD,
         density: float = 5.0,
         image_size: int | None = None,
         width: int = 8,

@@ -154,10 +154,22 @@ def test_missing_generated_files_are_reported(tiny_dataset, tmp_path):
         _dm(tiny_dataset).load_state_dict(state)
 
 
-def test_max_generated_keeps_the_newest(tiny_dataset, tmp_path):
-    dm = _dm(tiny_dataset, generated_dir=str(tmp_path / "gen"), max_generated=2)
-    dm.add_samples([_sample(dm, i) for i in range(3)])
+def test_max_total_keeps_the_newest(tiny_dataset, tmp_path):
+    dm = _dm(tiny_dataset, generated_dir=str(tmp_path / "gen"))
+    dm.add_samples([_sample(dm, i) for i in range(3)], max_total=2)
     assert [e["id"] for e in dm.generated_samples] == [1, 2]
+    dm.add_samples([_sample(dm, 3)])  # no cap: nothing dropped
+    assert [e["id"] for e in dm.generated_samples] == [1, 2, 3]
+    dm.add_samples([], max_total=1)
+    assert [e["id"] for e in dm.generated_samples] == [3]
+
+
+def test_the_datamodule_no_longer_caps_generated_samples(tiny_dataset):
+    # One owner of the cap: the callback's `max_samples` (passed as `add_samples(max_total=...)`).
+    with pytest.raises(ValueError, match=r"`max_generated` must be None .*ErrorGuidedViewAugmentation\(max_samples"):
+        VTRDataModule(str(tiny_dataset), max_generated=2)
+    dm = _dm(tiny_dataset, max_generated=None)  # what old hyperparameter files hold
+    assert not hasattr(dm, "max_generated") and "max_generated" not in dm.hparams
 
 
 def test_bad_arguments_are_named(tiny_dataset):
@@ -165,8 +177,8 @@ def test_bad_arguments_are_named(tiny_dataset):
         VTRDataModule(str(tiny_dataset), num_views=0)
     with pytest.raises(TypeError, match=r"`batch_size` must be an int, got float 4.0"):
         VTRDataModule(str(tiny_dataset), batch_size=4.0)
-    with pytest.raises(ValueError, match=r"`max_generated` must be an int >= 0, got -1"):
-        VTRDataModule(str(tiny_dataset), max_generated=-1)
+    with pytest.raises(ValueError, match=r"`max_total` must be an int >= 0, got -1"):
+        _dm(tiny_dataset).add_samples([], max_total=-1)
     with pytest.raises(ValueError, match="`shapenet_rendering` must be None when `root`"):
         VTRDataModule(str(tiny_dataset), shapenet_rendering={})
     with pytest.raises(
@@ -184,15 +196,14 @@ def test_bad_arguments_are_named(tiny_dataset):
         dm.add_samples([s])
 
 
-def test_n_views_is_a_deprecated_alias_of_num_views(tiny_dataset):
-    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
-        dm = _dm(tiny_dataset, n_views=2, batch_size=3)
+def test_num_views_sets_the_views_per_item(tiny_dataset):
+    dm = _dm(tiny_dataset, num_views=2, batch_size=3)
     assert dm.num_views == 2
-    # The checkpointed hyperparameters hold the new name only, with the resolved value.
     assert dm.hparams["num_views"] == 2 and "n_views" not in dm.hparams
     assert next(iter(dm.val_dataloader()))["images"].shape == (3, 2, 3, 32, 32)
-    with pytest.warns(DeprecationWarning, match="`VTRDataModule.n_views` was renamed `num_views`"):
-        assert dm.n_views == 2
+    with pytest.raises(TypeError, match="n_views"):  # the deprecated alias is gone
+        _dm(tiny_dataset, n_views=2)
+    assert not hasattr(dm, "n_views")
 
 
 def _free_port() -> int:

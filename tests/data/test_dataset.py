@@ -56,17 +56,14 @@ def test_image_transform_accepts_numpy_background():
     assert ImageTransform(8, background=np.array([1, 2, 3])).background == (1, 2, 3)
 
 
-def test_vtr_dataset_num_views_and_deprecated_alias(tiny_dataset):
+def test_vtr_dataset_num_views(tiny_dataset):
     records = [r for r in scan_dataset(tiny_dataset) if r.split == "test"]
     ds = VTRDataset(records, "hemispherical", num_views=4, transform=ImageTransform(16))
     assert ds.num_views == 4 and len(ds) == len(records)
     assert ds[0]["images"].shape == (4, 3, 16, 16) and ds[0]["view_set"] == "hemispherical"
-    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
-        old = VTRDataset(records, "hemispherical", n_views=4, transform=ImageTransform(16))
-    assert old.num_views == 4
-    assert np.array_equal(old.view_indices(1), ds.view_indices(1))  # same draw under either name
-    with pytest.warns(DeprecationWarning, match="`VTRDataset.n_views` was renamed"):
-        assert old.n_views == 4
+    with pytest.raises(TypeError, match="n_views"):  # the deprecated alias is gone
+        VTRDataset(records, "hemispherical", n_views=4, transform=ImageTransform(16))
+    assert not hasattr(ds, "n_views")
     with pytest.raises(ValueError, match=r"`num_views` must be at most the number of views of each object, got 9"):
         VTRDataset(records, "aligned", num_views=9)  # the tiny dataset has 8 views per set
     with pytest.raises(ValueError, match=r"`num_views` must be an int >= 1, got 0"):
