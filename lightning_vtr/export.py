@@ -24,6 +24,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from PIL import Image
 
 from lightning_vtr.data.binvox import write_binvox
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_choice, check_float, check_type
 from lightning_vtr.visualize import as_voxel_grid
@@ -51,7 +52,7 @@ def _binary(voxels: Any, threshold: float) -> np.ndarray:
     return grid if grid.dtype == np.bool_ else grid >= threshold
 
 
-def voxels_to_mesh(voxels: Any, threshold: float = 0.4) -> trimesh.Trimesh:
+def voxels_to_mesh(voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> trimesh.Trimesh:
     """The surface of a voxel grid by marching cubes, in world coordinates.
 
     A float grid of probabilities gives the iso-surface at ``threshold`` of the probabilities (smooth, and
@@ -62,7 +63,7 @@ def voxels_to_mesh(voxels: Any, threshold: float = 0.4) -> trimesh.Trimesh:
 
     Args:
         voxels: ``(R, R, R)`` occupancy probabilities in ``[0, 1]``, or a bool grid.
-        threshold: the iso-level of a float grid (0.4, the paper's IoU threshold).
+        threshold: the iso-level of a float grid (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
 
     Returns:
         a :class:`trimesh.Trimesh` (no faces when no cell reaches ``threshold``).
@@ -84,7 +85,7 @@ def voxels_to_mesh(voxels: Any, threshold: float = 0.4) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, faces[:, ::-1], process=True)
 
 
-def export_binvox(path: str | os.PathLike, voxels: Any, threshold: float = 0.4) -> Path:
+def export_binvox(path: str | os.PathLike, voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> Path:
     """Write ``voxels >= threshold`` (a bool grid as is) as a binvox file (:func:`lightning_vtr.data.binvox.write_binvox`:
     ``translate -0.5``, ``scale 1``, +Z up); returns the path."""
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
@@ -94,7 +95,7 @@ def export_binvox(path: str | os.PathLike, voxels: Any, threshold: float = 0.4) 
     return path
 
 
-def export_mesh(path: str | os.PathLike, voxels: Any, threshold: float = 0.4) -> Path:
+def export_mesh(path: str | os.PathLike, voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> Path:
     """Write the marching-cubes surface of :func:`voxels_to_mesh` to ``path``; the suffix picks the format
     (one of :data:`MESH_FORMATS`). An empty prediction writes a file with no faces. Returns the path."""
     path = Path(path)
@@ -124,7 +125,7 @@ def export_prediction(
     directory: str | os.PathLike,
     voxels: Any,
     *,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     mesh_format: str = "obj",
     sheet: np.ndarray | None = None,
     name: str = "prediction",
@@ -236,7 +237,7 @@ class VoxelPredictionWriter(BasePredictionWriter):
 
     Args:
         output_dir: where to write.
-        threshold: binarisation threshold (0.4: the paper's IoU threshold).
+        threshold: binarisation threshold (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
         mesh_format: one of :data:`MESH_FORMATS`, or ``None`` for no mesh.
         sheets: draw a sheet per object (:func:`lightning_vtr.visualize.object_sheet`; a few renders each).
         panel_size: side of a sheet's panels in pixels.
@@ -250,7 +251,7 @@ class VoxelPredictionWriter(BasePredictionWriter):
     def __init__(
         self,
         output_dir: str | os.PathLike,
-        threshold: float = 0.4,
+        threshold: float = DEFAULT_THRESHOLD,
         mesh_format: Literal["obj", "ply", "stl", "off", "glb"] | None = "obj",
         sheets: bool = True,
         panel_size: int = 128,

@@ -20,6 +20,7 @@ from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
 
 from lightning_vtr.geometry import check_viewpoints
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_float, check_int, check_type
 
 if TYPE_CHECKING:
@@ -168,7 +169,7 @@ def render_voxels(
     voxels: Any,
     viewpoints: Any = DISPLAY_VIEWPOINTS,
     *,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     colors: np.ndarray | None = None,
     image_size: int = 128,
     background: Sequence[int] = _WHITE,
@@ -178,7 +179,7 @@ def render_voxels(
     Args:
         voxels: ``(R, R, R)`` occupancy probabilities (occupied where ``>= threshold``) or a bool grid.
         viewpoints: ``(V, 2)`` (yaw, pitch) in **degrees**.
-        threshold: binarisation threshold of a float grid (0.4: the paper's IoU threshold).
+        threshold: binarisation threshold of a float grid (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
         colors: ``(R, R, R, 3)`` uint8 RGB per cell; ``None`` paints every cell :data:`VOXEL_COLOR`.
         image_size: side ``S`` of each picture in pixels.
         background: RGB (0-255) behind the object.
@@ -194,7 +195,7 @@ def render_voxels(
     return _render_mesh(voxel_mesh(occ, colors), _viewpoints(viewpoints), image_size, background)
 
 
-def error_labels(predicted: Any, target: Any, *, threshold: float = 0.4) -> np.ndarray:
+def error_labels(predicted: Any, target: Any, *, threshold: float = DEFAULT_THRESHOLD) -> np.ndarray:
     """Per-voxel error class of a prediction against the ground truth.
 
     Args:
@@ -230,7 +231,7 @@ def render_error(
     target: Any,
     viewpoints: Any = DISPLAY_VIEWPOINTS,
     *,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     image_size: int = 128,
     background: Sequence[int] = _WHITE,
 ) -> np.ndarray:
@@ -253,7 +254,7 @@ def error_projection_images(
     target: Any,
     viewpoints: Any,
     *,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     image_size: int | None = None,
 ) -> np.ndarray:
     """The paper's error projection (first hit of the binary error volume along each ray, orthographic),
@@ -410,7 +411,7 @@ def object_sheet(
     input_captions: Sequence[str] | None = None,
     selected_viewpoints: Any | None = None,
     display_viewpoints: Any = DISPLAY_VIEWPOINTS,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     panel_size: int = 128,
     normalize: str | None = "auto",
     title: str | None = None,
@@ -506,7 +507,7 @@ def log_validation_sheets(
     *,
     max_objects: int = 4,
     selector: ViewSelector | None = None,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     panel_size: int = 96,
     tag: str = "val/sheets",
 ) -> np.ndarray | None:

@@ -1,4 +1,4 @@
-"""Voxel reconstruction metrics (DESIGN section 7): IoU at thresholds, best-threshold IoU and F-score@1 %.
+"""Voxel reconstruction metrics: IoU at thresholds, best-threshold IoU and F-score@1 %.
 
 Classes are torchmetrics ``Metric``s that sync across processes; the math lives in
 :mod:`lightning_vtr.metrics.functional`.
@@ -9,6 +9,7 @@ from __future__ import annotations
 from lightning_vtr.metrics.functional import (
     DEFAULT_FSCORE_CONVENTION,
     DEFAULT_IOU_THRESHOLDS,
+    DEFAULT_THRESHOLD,
     FSCORE_CONVENTIONS,
     voxel_fscore,
     voxel_iou,
@@ -19,6 +20,7 @@ from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU, VoxelIoUBest
 __all__ = [
     "DEFAULT_FSCORE_CONVENTION",
     "DEFAULT_IOU_THRESHOLDS",
+    "DEFAULT_THRESHOLD",
     "FSCORE_CONVENTIONS",
     "VoxelFScore",
     "VoxelIoU",

@@ -14,11 +14,13 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 from torch import Tensor
 
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "DEFAULT_FSCORE_CONVENTION",
     "DEFAULT_IOU_THRESHOLDS",
+    "DEFAULT_THRESHOLD",
     "FSCORE_CONVENTIONS",
     "check_thresholds",
     "precision_recall",
@@ -282,7 +284,7 @@ def voxel_fscore(
     preds: Tensor,
     target: Tensor,
     *,
-    threshold: float = 0.4,
+    threshold: float = DEFAULT_THRESHOLD,
     num_points: int = 8192,
     distance: float = 0.01,
     convention: str = DEFAULT_FSCORE_CONVENTION,

@@ -23,6 +23,7 @@ from lightning_vtr.metrics.functional import (
     voxel_fscore,
     voxel_iou,
 )
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = ["VoxelFScore", "VoxelIoU", "VoxelIoUBest"]
@@ -270,7 +271,7 @@ class VoxelFScore(_PerObjectMean):
 
     def __init__(
         self,
-        threshold: float = 0.4,
+        threshold: float = DEFAULT_THRESHOLD,
         num_points: int = 8192,
         distance: float = 0.01,
         seed: int = 0,

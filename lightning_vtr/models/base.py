@@ -55,7 +55,7 @@ from torch.utils.data import DistributedSampler
 from lightning_vtr.metrics import VoxelFScore, VoxelIoU
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS, threshold_key
 from lightning_vtr.models.weights import restoring_checkpoint
-from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.protocol import DEFAULT_THRESHOLD, VIEW_SETS
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 try:  # Lightning's classmethod that refuses to be called on an instance (whose result would be dropped)
@@ -103,7 +103,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         voxel_resolution: int = 32,
         *,
         iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
-        fscore_threshold: float = 0.4,
+        fscore_threshold: float = DEFAULT_THRESHOLD,
         fscore_points: int = 8192,
         validation_fscore: bool = True,
         categories: Sequence[str] | None = None,

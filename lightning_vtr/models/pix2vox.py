@@ -26,6 +26,7 @@ from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.layers import VolumeHead, channels_last_3d
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_choice, check_type
 
 __all__ = ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec", "reference_init_"]
@@ -420,7 +421,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         freeze_backbone: bool | None = False,
         init: str | None = None,
         iou_thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS,
-        fscore_threshold: float = 0.4,
+        fscore_threshold: float = DEFAULT_THRESHOLD,
         fscore_points: int = 8192,
         validation_fscore: bool = True,
         log_sheets: int = 0,
