@@ -27,6 +27,7 @@ import torch  # noqa: E402
 import trimesh  # noqa: E402
 
 from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, camera_pose, check_viewpoints  # noqa: E402
+from lightning_vtr.utils.compositing import alpha_composite  # noqa: E402
 from lightning_vtr.utils.validation import check_choice, check_float, check_int  # noqa: E402
 
 __all__ = [
@@ -299,12 +300,21 @@ def get_renderer(image_size: int = 256, **kwargs: Any) -> Renderer:
 def composite(rgba: np.ndarray, background: tuple[int, int, int] = (255, 255, 255)) -> np.ndarray:
     """Alpha-composite straight-alpha RGBA images ``(..., H, W, 4)`` uint8 over a flat colour.
 
+    The ``uint8`` form of :func:`~lightning_vtr.utils.compositing.alpha_composite`, with its inputs checked.
+
     Args:
         rgba: uint8 RGBA images, any leading dimensions.
         background: RGB in 0..255 (white by default, what Zero-1-to-3 and ShapeNetRendering users expect).
 
     Returns:
         ``(..., H, W, 3)`` uint8.
+
+    Raises:
+        ValueError: ``rgba`` is not ``(..., H, W, 4)`` uint8, or ``background`` not an RGB triple in 0..255.
+
+    Example:
+        >>> composite(np.array([[[200, 100, 0, 128]]], dtype=np.uint8), background=(0, 0, 0))[0, 0].tolist()
+        [100, 50, 0]
     """
     rgba = np.asarray(rgba)
     if rgba.ndim < 3 or rgba.shape[-1] != 4:
@@ -314,6 +324,4 @@ def composite(rgba: np.ndarray, background: tuple[int, int, int] = (255, 255, 25
     bg = np.asarray(background, dtype=np.float32)
     if bg.shape != (3,) or (bg < 0).any() or (bg > 255).any():
         raise ValueError(f"`background` must be an RGB triple in 0..255, got {background}")
-    alpha = rgba[..., 3:4].astype(np.float32) / 255.0
-    out = rgba[..., :3].astype(np.float32) * alpha + bg * (1.0 - alpha)
-    return np.rint(out).astype(np.uint8)
+    return alpha_composite(rgba, bg)

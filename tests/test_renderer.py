@@ -203,6 +203,15 @@ def test_composite_blends_over_background():
         composite(rgba, background=(0, 0, 300))
 
 
+def test_composite_is_the_float32_formula_rounded_on_random_images():
+    rgba = np.random.default_rng(2).integers(0, 256, (3, 6, 5, 4), dtype=np.uint8)
+    for background in [(255, 255, 255), (0, 51, 240)]:
+        alpha = rgba[..., 3:4].astype(np.float32) / 255.0
+        bg = np.asarray(background, dtype=np.float32)
+        expected = np.rint(rgba[..., :3].astype(np.float32) * alpha + bg * (1.0 - alpha)).astype(np.uint8)
+        np.testing.assert_array_equal(composite(rgba, background=background), expected)
+
+
 def test_renderers_share_one_cached_context():
     from lightning_vtr import renderer as render
 

@@ -26,6 +26,7 @@ from PIL import Image
 from torch import Tensor
 
 from lightning_vtr.data.format import IMAGE_SUFFIXES
+from lightning_vtr.utils.compositing import alpha_composite
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 __all__ = [
@@ -44,7 +45,6 @@ __all__ = [
     "adjust_contrast",
     "adjust_saturation",
     "center_crop",
-    "composite_background",
     "hflip",
     "normalize_image",
     "pca_lighting",
@@ -99,24 +99,6 @@ def _per_image(value: float | Tensor, image: Tensor) -> Tensor:
     """A scalar or a ``(...)`` tensor of per-image values as ``(..., 1, 1, 1)``, broadcastable over ``image``."""
     value = torch.as_tensor(value, dtype=image.dtype, device=image.device)
     return value.reshape(*value.shape, 1, 1, 1)
-
-
-def composite_background(rgba: Tensor, background: Sequence[float] | Tensor) -> Tensor:
-    """Composite straight-alpha RGBA over a solid colour: ``rgb * a + background * (1 - a)``.
-
-    Args:
-        rgba: ``(..., 4, H, W)`` in ``[0, 1]``.
-        background: RGB in ``[0, 1]``, ``(3,)`` or ``(..., 3)`` (one colour per image).
-
-    Returns:
-        ``(..., 3, H, W)``.
-    """
-    _check_image(rgba, 4, "rgba")
-    bg = torch.as_tensor(background, dtype=rgba.dtype, device=rgba.device)
-    if bg.shape[-1:] != (3,):
-        raise ValueError(f"`background` must be (..., 3) RGB, got shape {tuple(bg.shape)}")
-    alpha = rgba[..., 3:, :, :]
-    return rgba[..., :3, :, :] * alpha + bg[..., :, None, None] * (1.0 - alpha)
 
 
 def center_crop(image: Tensor, fraction: float) -> Tensor:
@@ -592,14 +574,13 @@ class ImageTransform:
         # 2. composite, crop, resize (the plain path is the package's original transform, bit for bit)
         x = torch.from_numpy(np.ascontiguousarray(batch)).float() / 255.0  # (T, H, W, C)
         if x.shape[-1] == 4:
-            alpha = x[..., 3:]
             if draw is not None and draw.scenes:  # a crop of a folder image per view, the view's size
                 height, width = batch.shape[1:3]
                 crops = [self.backgrounds.crop(i, (u, v), height, width) for i, u, v in draw.scenes]  # type: ignore[union-attr]
                 bg = torch.from_numpy(np.stack(crops)).to(x.dtype) / 255.0  # (T, H, W, 3)
             else:
                 bg = torch.tensor(background, dtype=x.dtype) / 255.0
-            x = x[..., :3] * alpha + bg * (1.0 - alpha)
+            x = alpha_composite(x, bg)
         x = x.permute(0, 3, 1, 2)
         if r.crop < 1.0:
             x = center_crop(x, r.crop)

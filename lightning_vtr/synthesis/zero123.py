@@ -46,6 +46,7 @@ from lightning_vtr.synthesis.zero123_checkpoint import (
     read_feature_extractor,
 )
 from lightning_vtr.synthesis.zero123_hub import resolve_checkpoint
+from lightning_vtr.utils.compositing import alpha_composite
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -629,9 +630,8 @@ class Zero123Synthesizer(Synthesizer):
             ``(3, R, R)`` float RGB in ``[0, 1]`` composited on white, and the square's side in input pixels.
         """
         rgba = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0  # (4, H, W)
-        alpha = rgba[3:]
-        rgb = rgba[:3] * alpha + (1.0 - alpha)  # composite on white
-        mask = alpha[0] > 0
+        rgb = alpha_composite(rgba, channels_first=True)  # on white
+        mask = rgba[3] > 0
         if bool(mask.all()):
             mask = (rgb < self.background_threshold).any(dim=0)
         if not bool(mask.any()):

@@ -21,6 +21,7 @@ from lightning.pytorch.loggers import CometLogger, CSVLogger, Logger, MLFlowLogg
 from lightning.pytorch.utilities import rank_zero_warn
 from PIL import Image
 
+from lightning_vtr.utils.compositing import alpha_composite
 from lightning_vtr.utils.io import atomic_write
 
 __all__ = ["image_to_uint8", "log_image", "png_path"]
@@ -57,8 +58,7 @@ def image_to_uint8(image: Any) -> np.ndarray:
     if image.dtype != np.uint8:
         image = (np.clip(image.astype(np.float32), 0.0, 1.0) * 255.0).round().astype(np.uint8)
     if image.shape[-1] == 4:
-        alpha = image[..., 3:].astype(np.float32) / 255.0
-        image = (image[..., :3].astype(np.float32) * alpha + 255.0 * (1.0 - alpha)).round().astype(np.uint8)
+        image = alpha_composite(image)  # on white
     return np.ascontiguousarray(image)
 
 

@@ -1,4 +1,4 @@
-"""Folder backgrounds: training views composited over random crops of a folder's images (issue 17)."""
+"""Folder backgrounds: training views composited over random crops of a folder's images."""
 
 from __future__ import annotations
 
@@ -63,6 +63,19 @@ def test_composite_over_a_background_of_the_views_size_is_exact(tmp_path):
     np.testing.assert_allclose(got[2, 1] * 255, [21, 77, 234], atol=1e-4)
     expected = (100 * 128 + np.array([13, 77, 242]) * 127) / 255
     np.testing.assert_allclose(got[1, 3] * 255, expected, atol=1e-4)
+
+
+def test_composite_over_a_folder_image_is_the_float32_formula_bit_for_bit(tmp_path):
+    # Random views, one background image of their size: rgb * a + bg * (1 - a) in float32, as the transform always did.
+    rng = np.random.default_rng(4)
+    background = rng.integers(0, 256, (SIDE, SIDE, 3), dtype=np.uint8)
+    _save(background, tmp_path / "bg" / "only.png")
+    views = rng.integers(0, 256, (3, SIDE, SIDE, 4), dtype=np.uint8)
+    out = _transform(tmp_path / "bg")(views, key=(0, 1, 2))
+    x = torch.from_numpy(views).float() / 255.0
+    bg = torch.from_numpy(background).float() / 255.0
+    expected = (x[..., :3] * x[..., 3:] + bg * (1.0 - x[..., 3:])).permute(0, 3, 1, 2)
+    assert torch.equal(out, expected)
 
 
 def test_crop_of_a_larger_background_is_the_window_at_the_drawn_position(tmp_path):

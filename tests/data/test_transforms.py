@@ -21,13 +21,13 @@ from lightning_vtr.data.transforms import (
     adjust_contrast,
     adjust_saturation,
     center_crop,
-    composite_background,
     hflip,
     normalize_image,
     pca_lighting,
     permute_channels,
     rgb_to_grayscale,
 )
+from lightning_vtr.utils.compositing import alpha_composite
 
 
 def _original_transform(rgba, image_size, background, normalize):
@@ -89,21 +89,6 @@ def test_pm1_is_x_times_2_minus_1_and_the_same_as_mean_std_one_half():
 
 
 # ---------------------------------------------------------------------------------------------- each op
-def test_composite_background_blends_with_straight_alpha():
-    rgba = torch.tensor([[1.0, 0.0, 0.2], [0.0, 0.0, 0.4], [0.0, 1.0, 0.6], [1.0, 0.0, 0.5]]).view(4, 1, 3)
-    out = composite_background(rgba, (0.2, 0.4, 1.0))
-    assert out.shape == (3, 1, 3)
-    assert out[:, 0, 0].tolist() == [1.0, 0.0, 0.0]  # opaque: the image
-    assert torch.allclose(out[:, 0, 1], torch.tensor([0.2, 0.4, 1.0]))  # transparent: the background
-    assert torch.allclose(out[:, 0, 2], 0.5 * torch.tensor([0.2, 0.4, 0.6]) + 0.5 * torch.tensor([0.2, 0.4, 1.0]))
-    per_image = composite_background(torch.zeros(2, 4, 1, 1), torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]]))
-    assert torch.allclose(per_image[:, :, 0, 0], torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]]))
-    with pytest.raises(ValueError, match=r"`rgba` must be \(\.\.\., 4, H, W\), got shape \(3, 1, 3\)"):
-        composite_background(out, (0.0, 0.0, 0.0))
-    with pytest.raises(ValueError, match=r"`background` must be \(\.\.\., 3\) RGB"):
-        composite_background(rgba, (0.0, 0.0))
-
-
 def test_brightness_scales_and_the_transform_clamps_unless_told_not_to():
     x = torch.full((3, 2, 2), 0.5)
     assert torch.equal(adjust_brightness(x, 1.5), torch.full((3, 2, 2), 0.75))
@@ -265,7 +250,7 @@ def test_pix2vox_training_applies_the_drawn_ops_in_order():
     key = (0, 4, 11)
     draw = transform.draw(key, 2)
     x = torch.from_numpy(rgba).float().div(255.0).permute(0, 3, 1, 2)
-    x = composite_background(x, torch.tensor(draw.background) / 255.0)
+    x = alpha_composite(x, torch.tensor(draw.background) / 255.0, channels_first=True)
     x = F.interpolate(center_crop(x, 128 / 137), size=(64, 64), mode="bilinear", antialias=True).clamp(0, 1)
     ops = (adjust_brightness, adjust_contrast, adjust_saturation)
     for op in draw.order:

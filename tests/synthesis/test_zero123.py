@@ -187,6 +187,19 @@ def test_preprocess_centres_on_white(synth_a):
     torch.testing.assert_close(pixels2, pixels, atol=1e-5, rtol=0)
 
 
+def test_preprocess_composites_on_white_as_the_float32_formula(synth_a):
+    # A random semi-transparent object: the white composite is rgb * a + (1 - a), then centred and resized.
+    from lightning_vtr.synthesis.zero123 import _center_fit, _resize
+
+    rgba = np.zeros((48, 48, 4), dtype=np.uint8)
+    rgba[10:30, 14:40] = np.random.default_rng(5).integers(1, 256, (20, 26, 4), dtype=np.uint8)
+    pixels, side = synth_a.preprocess(rgba)
+    x = torch.from_numpy(rgba).permute(2, 0, 1).float() / 255.0
+    rgb = x[:3] * x[3:] + (1.0 - x[3:])
+    expected = _resize(_center_fit(rgb[:, 10:30, 14:40], side), 64).clamp(0.0, 1.0)
+    assert side == 33 and torch.equal(pixels, expected)
+
+
 def test_postprocess_restores_scale_and_alpha(synth_a):
     # a model image of a dark square in the centre half; input crop spanned 33 px of a 48 px source
     rgb = torch.ones(3, 64, 64)

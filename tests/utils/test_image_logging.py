@@ -37,6 +37,14 @@ def test_image_to_uint8_takes_the_usual_layouts():
         image_to_uint8([[0]])
 
 
+def test_rgba_is_composited_on_white_as_the_float32_formula_rounded():
+    rgba = np.random.default_rng(1).integers(0, 256, (6, 5, 4), dtype=np.uint8)
+    alpha = rgba[..., 3:].astype(np.float32) / 255.0
+    expected = (rgba[..., :3].astype(np.float32) * alpha + 255.0 * (1.0 - alpha)).round().astype(np.uint8)
+    np.testing.assert_array_equal(image_to_uint8(rgba), expected)
+    np.testing.assert_array_equal(image_to_uint8(torch.from_numpy(rgba).permute(2, 0, 1)), expected)
+
+
 def test_png_path_keeps_tags_inside_the_images_folder(tmp_path):
     assert png_path(tmp_path, "vtr/new_views", 12) == tmp_path / "images" / "vtr" / "new_views" / "step_000012.png"
     assert png_path(tmp_path, "../../etc/x y", 1) == tmp_path / "images" / "etc" / "x_y" / "step_000001.png"
