@@ -141,14 +141,14 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
     """Run :class:`VTRLightningCLI` on ``argv`` (``None``: ``sys.argv[1:]``); returns the exit status 0.
 
     The configs and ``--ckpt_path`` are checked first (:func:`check_config`,
-    :func:`lightning_vtr.cli.predict.check_checkpoint`), and jsonargparse's errors are raised as
+    :func:`lightning_vtr.models.registry.check_checkpoint`), and jsonargparse's errors are raised as
     :class:`~lightning_vtr.errors.UsageError` (one line from ``lightning-vtr``) instead of printing the usage.
     """
     import argparse
     import sys
 
-    from lightning_vtr.cli.predict import check_checkpoint
     from lightning_vtr.errors import DataError, UsageError
+    from lightning_vtr.models.registry import check_checkpoint
 
     words = list(sys.argv[1:] if argv is None else argv)
     if not any(word in ("-h", "--help") for word in words):

@@ -11,19 +11,24 @@ category, ``category = all`` for the overall row; fractions) and ``OUT/results.j
 ``[NAME=]PATH`` (the row's name; default the file's stem). Each model gets the image transform it was validated
 with (the checkpoint's datamodule settings, as ``lightning-vtr predict`` reads them) and voxels at its
 resolution. ``--frame-check N`` (pix3d) first projects the voxels of N photographs with their poses and prints the
-silhouette IoU against the masks (:func:`lightning_vtr.data.pix3d.frame_check`).
+silhouette IoU against the masks (:func:`lightning_vtr.evaluation.pix3d.frame_check`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from lightning_vtr.cli.arguments import positive_int
+from lightning_vtr.cli.arguments import check_output_folder, positive_int
+from lightning_vtr.data.folder_test_set import VIEW_CHOICES, FolderTestSet
+from lightning_vtr.data.pix3d import POOLINGS, Pix3DDataset, read_pix3d
 from lightning_vtr.errors import UsageError
+from lightning_vtr.evaluation.dataset import evaluate_dataset, evaluation_notes, write_evaluation
+from lightning_vtr.evaluation.pix3d import frame_check_summary, frame_check_warning, write_frame_check
+from lightning_vtr.evaluation.predict import make_datamodule, resolve_device
+from lightning_vtr.models.registry import check_checkpoint, load_model
 
 __all__ = [
     "FOLDER_HELP",
@@ -33,7 +38,6 @@ __all__ = [
     "checkpoint_argument",
     "run",
     "run_folder",
-    "write_results",
 ]
 
 HELP = "evaluate checkpoints on Pix3D photographs; write the paper's Table 5 (mIoU, F-score) as markdown and CSV"
@@ -74,6 +78,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``lightning-vtr pix3d`` to ``parser``."""
     parser.description = (
         "Evaluate checkpoints on Pix3D (single-view real photographs): each photograph is cropped around its "
         "box, masked, and given to the model through the transform it was validated with; its voxel.mat is "
@@ -86,12 +91,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--limit", type=positive_int, default=None, help="at most N photographs (the first in pix3d.json order)")
     add("--margin", type=float, default=0.1, help="crop margin per side, fraction of the box's longer side (0.1)")
     add("--no-mask", action="store_true", help="keep the photograph's background (no mask compositing)")
-    add("--pooling", choices=("max", "mean"), default="max", help="voxel down-sampling rule (default max)")
+    add("--pooling", choices=POOLINGS, default="max", help="voxel down-sampling rule (default max)")
     add("--yaw-offset", type=int, default=0, choices=(0, 90, 180, 270, -90), help="extra turn of the voxels about +Z")
     add("--frame-check", type=int, default=0, metavar="N", help="first check the voxel frame on N photographs")
 
 
 def add_folder_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``lightning-vtr evaluate-folder`` to ``parser``."""
     parser.description = (
         "Evaluate checkpoints on a folder test set without camera metadata: IMAGES/<taxonomy>/<model>/NN.png with "
         "voxels VOXELS/<taxonomy>/<model>/model.binvox (ShapeNetVox32, +Y up). Writes OUT/table.md, results.csv "
@@ -102,23 +108,14 @@ def add_folder_arguments(parser: argparse.ArgumentParser) -> None:
     add("--voxels", type=Path, required=True, help="the voxel folder, e.g. ShapeNetVox32")
     _common(parser)
     add("--views", type=positive_int, default=None, help="views per object (default: the model's num_views)")
-    add("--view-choice", choices=("first", "spread", "random"), default="first", help="which views (default first)")
+    add("--view-choice", choices=VIEW_CHOICES, default="first", help="which views (default first)")
     add("--seed", type=int, default=0, help="seed of --view-choice random (default 0)")
     add("--voxel-up-axis", choices=("y", "z"), default="y", help="up axis of the voxel files (ShapeNetVox32: y)")
 
 
 # ---------------------------------------------------------------------------------------------- shared
-def _device(name: str) -> str:
-    import torch
-
-    return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
-
-
 def _check_checkpoints_and_out(args: argparse.Namespace) -> None:
     """Every ``--checkpoint`` a readable Lightning checkpoint, ``--out`` new, empty or an earlier table's."""
-    from lightning_vtr.cli.arguments import check_output_folder
-    from lightning_vtr.cli.predict import check_checkpoint
-
     for _, path in args.checkpoint:
         check_checkpoint(path, "--checkpoint")
     check_output_folder(args.out, marker="table.md")
@@ -126,54 +123,13 @@ def _check_checkpoints_and_out(args: argparse.Namespace) -> None:
 
 def _load(path: Path, model_class: str | None) -> tuple[Any, Any]:
     """The model and the evaluation transform it was validated with."""
-    from lightning_vtr.cli.predict import load_model, make_datamodule
-
     model = load_model(path, model_class)
     return model, make_datamodule(path, model).transform
 
 
-def write_results(out: Path, results: dict[str, Any], *, title: str, notes: list[str], per_category: bool) -> str:
-    """Write ``table.md``, ``results.csv`` and ``results.json`` into ``out``; return the table."""
-    import csv
-    import io
-
-    from lightning_vtr.data.folder_eval import evaluation_rows, format_evaluation_table
-    from lightning_vtr.utils.io import atomic_write
-
-    out.mkdir(parents=True, exist_ok=True)
-    categories = sorted({c for r in results.values() for c in r["categories"]}) if per_category else None
-    table = format_evaluation_table(results, categories=categories)
-    atomic_write(out / "table.md", f"# {title}\n\n{table}\n\n" + "".join(f"* {n}\n" for n in notes))
-    rows = evaluation_rows(results)
-    fields = list(dict.fromkeys(k for row in rows for k in row))
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write(out / "results.csv", buffer.getvalue())
-    atomic_write(out / "results.json", json.dumps(results, indent=1))
-    return table
-
-
-def _notes(results: dict[str, Any], what: str) -> list[str]:
-    notes = [
-        f"{what}; mIoU: mean IoU over objects at threshold 0.4 (the paper's); F-score@1 % (community convention, "
-        "binarised at 0.4); values in %.",
-    ]
-    for name, result in results.items():
-        counts = ", ".join(f"{c} {v['count']}" for c, v in sorted(result["categories"].items()))
-        notes.append(
-            f"{name}: {result['overall']['count']} objects ({counts}); best-threshold mIoU "
-            f"{100 * result['overall']['iou_best']:.2f} at {result['best_threshold']:g}"
-        )
-    return notes
-
-
 # ---------------------------------------------------------------------------------------------- pix3d
 def run(args: argparse.Namespace) -> int:
-    from lightning_vtr.data.folder_eval import evaluate_dataset
-    from lightning_vtr.data.pix3d import Pix3DDataset, frame_check, frame_check_summary, read_pix3d
-
+    """Run ``lightning-vtr pix3d`` on parsed arguments; returns the exit status 0."""
     # 1. check inputs and read the photographs
     if not 0.0 <= args.margin <= 2.0:
         raise UsageError(f"`--margin` must be in [0, 2], got {args.margin}")
@@ -199,17 +155,11 @@ def run(args: argparse.Namespace) -> int:
     # 2. the frame check
     args.out.mkdir(parents=True, exist_ok=True)
     if args.frame_check:
-        ious = {r.key: frame_check(r) for r in records[: args.frame_check]}
-        summary = frame_check_summary(ious)
-        print(summary)
-        lines = ["photograph,iou"] + [f"{key},{iou:.4f}" for key, iou in ious.items()]
-        (args.out / "frame_check.csv").write_text("\n".join(lines) + "\n")
-        if sum(ious.values()) / len(ious) < 0.8:
-            print(
-                "warning: the voxels projected with the photographs' poses do not match the masks well "
-                "(mean IoU < 0.8); see frame_check.csv and lightning_vtr.data.pix3d",
-                file=sys.stderr,
-            )
+        ious = write_frame_check(args.out, records[: args.frame_check])
+        print(frame_check_summary(ious))
+        warning = frame_check_warning(ious)
+        if warning is not None:
+            print(warning, file=sys.stderr)
     # 3. each checkpoint
     results = {}
     for name, path in args.checkpoint:
@@ -224,11 +174,17 @@ def run(args: argparse.Namespace) -> int:
             yaw_offset=args.yaw_offset,
         )
         results[name] = evaluate_dataset(
-            model, dataset, batch_size=args.batch_size, device=_device(args.device), fscore_points=args.fscore_points
+            model,
+            dataset,
+            batch_size=args.batch_size,
+            device=resolve_device(args.device),
+            fscore_points=args.fscore_points,
         )
     # 4. the table
     what = f"Pix3D ({str(args.root)}), {len(records)} photographs, one view each"
-    table = write_results(args.out, results, title="Pix3D", notes=_notes(results, what), per_category=args.per_category)
+    table = write_evaluation(
+        args.out, results, title="Pix3D", notes=evaluation_notes(results, what), per_category=args.per_category
+    )
     print(table)
     print(f"Wrote {args.out / 'table.md'}, results.csv and results.json")
     return 0
@@ -236,8 +192,7 @@ def run(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------------------- folders
 def run_folder(args: argparse.Namespace) -> int:
-    from lightning_vtr.data.folder_eval import FolderTestSet, evaluate_dataset
-
+    """Run ``lightning-vtr evaluate-folder`` on parsed arguments; returns the exit status 0."""
     for option in ("--images", "--voxels"):
         folder = Path(getattr(args, option[2:])).expanduser()
         if not folder.is_dir():
@@ -261,13 +216,17 @@ def run_folder(args: argparse.Namespace) -> int:
         )
         sizes.add((len(dataset), dataset.num_views, dataset.view_set))
         results[name] = evaluate_dataset(
-            model, dataset, batch_size=args.batch_size, device=_device(args.device), fscore_points=args.fscore_points
+            model,
+            dataset,
+            batch_size=args.batch_size,
+            device=resolve_device(args.device),
+            fscore_points=args.fscore_points,
         )
     what = "; ".join(
         f"{str(args.images)} ({s}): {n} objects, {v} view(s) each ({args.view_choice})" for n, v, s in sorted(sizes)
     )
-    table = write_results(
-        args.out, results, title=str(args.images), notes=_notes(results, what), per_category=args.per_category
+    table = write_evaluation(
+        args.out, results, title=str(args.images), notes=evaluation_notes(results, what), per_category=args.per_category
     )
     print(table)
     print(f"Wrote {args.out / 'table.md'}, results.csv and results.json")

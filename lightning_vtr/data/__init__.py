@@ -12,7 +12,7 @@ if TYPE_CHECKING:  # what IDEs and type checkers see; at runtime __getattr__ imp
     from lightning_vtr.data.builder import BuildReport, build_dataset, ensure_embedded_dataset
     from lightning_vtr.data.datamodule import VTRDataModule
     from lightning_vtr.data.dataset import GeneratedSample
-    from lightning_vtr.data.folder_eval import FolderTestSet, evaluate_folder
+    from lightning_vtr.data.folder_test_set import FolderTestSet
     from lightning_vtr.data.format import DatasetFormatError, ObjectRecord, scan_dataset
     from lightning_vtr.data.pix3d import Pix3DDataset, Pix3DRecord, read_pix3d
     from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
@@ -31,8 +31,7 @@ _EXPORTS = {
     "ObjectRecord": "lightning_vtr.data.format",
     "scan_dataset": "lightning_vtr.data.format",
     "ShapeNetRenderingSource": "lightning_vtr.data.shapenet_rendering",
-    "FolderTestSet": "lightning_vtr.data.folder_eval",
-    "evaluate_folder": "lightning_vtr.data.folder_eval",
+    "FolderTestSet": "lightning_vtr.data.folder_test_set",
     "Pix3DDataset": "lightning_vtr.data.pix3d",
     "Pix3DRecord": "lightning_vtr.data.pix3d",
     "read_pix3d": "lightning_vtr.data.pix3d",
@@ -59,7 +58,6 @@ __all__ = [
     "VerifyReport",
     "build_dataset",
     "ensure_embedded_dataset",
-    "evaluate_folder",
     "read_pix3d",
     "scan_dataset",
     "verify_dataset",

@@ -1,4 +1,4 @@
-"""Test sets that are folders of images plus voxels, without camera metadata, and the evaluation loop they share.
+"""Test sets that are folders of images plus voxels, without camera metadata.
 
 The VTR authors released their test sets in the 3D-R2N2 / Pix2Vox layout without ``rendering_metadata.txt``::
 
@@ -7,8 +7,8 @@ The VTR authors released their test sets in the 3D-R2N2 / Pix2Vox layout without
 
 :class:`FolderTestSet` serves it as the batch dictionaries of :class:`~lightning_vtr.data.dataset.VTRDataset`
 (``images`` ``(V, 3, H, W)``, ``voxels`` ``(R, R, R)``, ``viewpoints``, ``category``, ``object_id``,
-``view_set``), so a model's ``test_step`` and :func:`evaluate_dataset` take it as they take ShapeNet-VTR.
-The viewpoints are unknown there and are served as NaN.
+``view_set``), so a model's ``test_step`` and :func:`~lightning_vtr.evaluation.dataset.evaluate_dataset` take
+it as they take ShapeNet-VTR. The viewpoints are unknown there and are served as NaN.
 
 Which ``num_views`` of an object's pictures an item uses (``view_choice``):
 
@@ -25,51 +25,34 @@ alphabetically. Voxels are read with :func:`lightning_vtr.data.dataset.load_voxe
 :class:`~lightning_vtr.data.shapenet_rendering.ShapeNetRenderingSource` reads ShapeNetVox32, so both readers put
 the same file in the same package-frame grid (+Z up, ``V[i, j, k]`` with ``(x, y, z)`` indices).
 
-:func:`evaluate_dataset` runs any model with ``predict_voxels`` over such a dataset (this one, Pix3D's or
-``VTRDataset``) and returns the package's metrics overall and per category; :func:`format_evaluation_table`
-prints them in the paper's Table 5 layout (``Method | mIoU | F-score``).
+Pictures are the files ending in one of :data:`~lightning_vtr.data.format.IMAGE_SUFFIXES` (any case).
+:func:`lightning_vtr.evaluation.dataset.evaluate_folder` evaluates a model on such a set.
 """
 
 from __future__ import annotations
 
-import math
 import re
 import warnings
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
 from lightning_vtr.data.dataset import _transform, load_rgba, load_voxels
-from lightning_vtr.data.format import SHAPENET_SYNSETS, SPLITS, ObjectRecord
+from lightning_vtr.data.format import IMAGE_SUFFIXES, SHAPENET_SYNSETS, SPLITS, ObjectRecord
 from lightning_vtr.data.shapenet_rendering import _load_split_file
 from lightning_vtr.data.transforms import ImageTransform
-from lightning_vtr.evaluation.tables import format_cell
-from lightning_vtr.metrics.functional import DEFAULT_FSCORE_CONVENTION, DEFAULT_IOU_THRESHOLDS
-from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.validation import check_choice, check_int
 
-__all__ = [
-    "IMAGE_SUFFIXES",
-    "VIEW_CHOICES",
-    "FolderTestSet",
-    "choose_views",
-    "evaluate_dataset",
-    "evaluate_folder",
-    "evaluation_rows",
-    "format_evaluation_table",
-]
+__all__ = ["VIEW_CHOICES", "FolderTestSet", "choose_views"]
 
 #: How :class:`FolderTestSet` picks an object's views (see the module docstring).
 VIEW_CHOICES = ("first", "spread", "random")
-#: Picture files of an object folder (case-insensitive).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _NUMBER = re.compile(r"\d+")
 
 
@@ -263,170 +246,3 @@ class FolderTestSet(Dataset):
             "object_id": record.object_id,
             "view_set": self.view_set,
         }
-
-
-# ---------------------------------------------------------------------------------------------- evaluation
-def _metric_key(threshold: float) -> str:
-    return f"iou@{threshold:g}"
-
-
-def evaluate_dataset(
-    model: Any,
-    dataset: Dataset,
-    *,
-    batch_size: int = 8,
-    device: str | torch.device = "cpu",
-    thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
-    fscore_threshold: float = 0.4,
-    fscore_points: int = 8192,
-    fscore_convention: str = DEFAULT_FSCORE_CONVENTION,
-    num_workers: int = 0,
-) -> dict[str, Any]:
-    """Run ``model.predict_voxels`` over ``dataset`` and measure IoU and F-score, overall and per category.
-
-    The metrics are the package's (:class:`~lightning_vtr.metrics.VoxelIoU`,
-    :class:`~lightning_vtr.metrics.VoxelFScore`, community F-score convention by default), i.e. what a model's
-    ``test_step`` logs. ``iou_best`` is the best-threshold mIoU VTR's test script prints: the largest of the
-    overall per-threshold means; each category's ``iou_best`` is its mean at that same threshold.
-
-    Args:
-        model: anything with ``predict_voxels(images (B, V, 3, H, W)) -> (B, R, R, R)`` probabilities (moved to
-            ``device`` and put in eval mode when it has ``to`` / ``eval``).
-        dataset: items with ``images``, ``voxels`` and ``category`` (:class:`FolderTestSet`,
-            :class:`~lightning_vtr.data.pix3d.Pix3DDataset`, ``VTRDataset``).
-        batch_size, device, num_workers: of the forward passes.
-        thresholds: the IoU thresholds (each gives ``iou@<t>``).
-        fscore_threshold, fscore_points, fscore_convention: of :class:`~lightning_vtr.metrics.VoxelFScore`.
-
-    Returns:
-        ``{"overall": {...}, "categories": {category: {...}}, "best_threshold": t}``, each inner dict holding
-        ``count``, ``iou@<t>`` for every threshold, ``iou_best`` and ``fscore`` (fractions in ``[0, 1]``).
-
-    Raises:
-        ValueError: the dataset is empty, or a prediction's shape is not the ground truth's (names both).
-    """
-    if len(dataset) == 0:
-        raise ValueError("`dataset` must hold at least one item, got an empty dataset")
-    batch_size = check_int("batch_size", batch_size, minimum=1)
-    device = torch.device(device)
-    iou = VoxelIoU(thresholds)
-    fscore = VoxelFScore(threshold=fscore_threshold, num_points=fscore_points, convention=fscore_convention)
-    if hasattr(model, "to"):
-        model = model.to(device)
-    if hasattr(model, "eval"):
-        model.eval()
-    loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=num_workers)
-    with torch.no_grad():
-        for batch in loader:
-            predicted: Tensor = model.predict_voxels(batch["images"].to(device)).float().cpu()
-            target = batch["voxels"].float()
-            if predicted.shape != target.shape:
-                raise ValueError(
-                    f"the model's predictions must have the ground truth's shape {tuple(target.shape)}, got "
-                    f"{tuple(predicted.shape)}: choose a dataset `resolution` equal to the model's voxel_resolution"
-                )
-            categories = list(batch["category"])
-            iou.update(predicted, target, categories)
-            fscore.update(predicted, target, categories)
-    overall_iou = iou.compute().reshape(-1)
-    best = int(torch.argmax(overall_iou))  # the lowest threshold on ties, like np.argmax
-    counts = dict(zip(iou.categories, iou.category_count.tolist()))
-
-    def entry(values: Tensor, f: Tensor, count: float) -> dict[str, float]:
-        values = values.reshape(-1)
-        out: dict[str, float] = {"count": int(count)}
-        out.update({_metric_key(t): float(v) for t, v in zip(iou.thresholds, values)})
-        out["iou_best"] = float(values[best])
-        out["fscore"] = float(f)
-        return out
-
-    per_f = fscore.compute_per_category()
-    return {
-        "overall": entry(overall_iou, fscore.compute(), float(iou.count)),
-        "categories": {c: entry(v, per_f[c], counts[c]) for c, v in iou.compute_per_category().items()},
-        "best_threshold": iou.thresholds[best],
-    }
-
-
-def evaluate_folder(
-    model: Any,
-    image_root: str | Path,
-    voxel_root: str | Path,
-    *,
-    num_views: int | None = None,
-    transform: Any = None,
-    batch_size: int = 8,
-    device: str | torch.device = "cpu",
-    **dataset_kwargs: Any,
-) -> dict[str, Any]:
-    """Evaluate ``model`` on a folder test set: :class:`FolderTestSet` + :func:`evaluate_dataset`.
-
-    ``num_views`` defaults to ``model.num_views`` and ``transform`` to the plain transform at
-    ``model.image_size`` (pass the one the model was validated with, e.g.
-    ``lightning_vtr.cli.predict.make_datamodule(ckpt, model).transform``); other keyword arguments go to
-    :class:`FolderTestSet`.
-
-    Example::
-
-        results = evaluate_folder(model, "VTR_test/Spherical", "ShapeNetVox32", num_views=3)
-        print(format_evaluation_table({"Ours (Pix2Vox++)": results}))
-    """
-    dataset = FolderTestSet(
-        image_root,
-        voxel_root,
-        num_views=int(num_views if num_views is not None else getattr(model, "num_views", 1)),
-        transform=transform if transform is not None else ImageTransform(int(getattr(model, "image_size", 224))),
-        **dataset_kwargs,
-    )
-    return evaluate_dataset(model, dataset, batch_size=batch_size, device=device)
-
-
-# ---------------------------------------------------------------------------------------------- tables
-def format_evaluation_table(
-    results: Mapping[str, Mapping[str, Any]],
-    *,
-    categories: Sequence[str] | None = None,
-    metric: str = "iou@0.4",
-    digits: int = 2,
-) -> str:
-    """The paper's Table 5 layout: ``| Method | mIoU | F-score |``, one row per method, values in %.
-
-    Args:
-        results: method name -> the dict :func:`evaluate_dataset` returns.
-        categories: also print ``<category> mIoU | <category> F-score`` columns for these (a category a
-            method has no objects of prints ``-``).
-        metric: the IoU column's key (``iou@0.4``, the paper's, by default; ``iou_best`` for VTR's script's).
-        digits: decimals of the percentages.
-
-    Example:
-        >>> r = {"overall": {"iou@0.4": 0.1624, "fscore": 0.0776}, "categories": {}}
-        >>> print(format_evaluation_table({"Pix2Vox++": r}))
-        | Method | mIoU | F-score |
-        |---|---|---|
-        | Pix2Vox++ | 16.24 | 7.76 |
-    """
-    title = "mIoU" if metric == "iou@0.4" else ("best mIoU" if metric == "iou_best" else f"mIoU@{metric[4:]}")
-    header = ["Method", title, "F-score"]
-    for category in categories or ():
-        header += [f"{category} {title}", f"{category} F-score"]
-    rows = []
-    for method, result in results.items():
-        groups = [result.get("overall", {})] + [result.get("categories", {}).get(c, {}) for c in categories or ()]
-        cells = [format_cell(g.get(key), digits=digits) for g in groups for key in (metric, "fscore")]
-        rows.append([method, *cells])
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
-def evaluation_rows(results: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Long-form rows for a CSV: one per method and group (``category`` is ``"all"`` for the overall row),
-    with ``count``, every ``iou@<t>``, ``iou_best`` and ``fscore`` as fractions."""
-    rows = []
-    for method, result in results.items():
-        groups = {"all": result.get("overall", {}), **result.get("categories", {})}
-        for category, values in groups.items():
-            row: dict[str, Any] = {"method": method, "category": category}
-            row.update({k: v for k, v in values.items() if not (isinstance(v, float) and math.isnan(v))})
-            rows.append(row)
-    return rows

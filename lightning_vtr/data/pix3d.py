@@ -35,13 +35,12 @@ the model frame before applying ``rot_mat`` to it:
    ``yaw_offset`` adds a further turn about ``+Z`` (multiples of 90 degrees) for models whose training
    objects faced elsewhere.
 
-**What the frame check checks.** :func:`frame_check` projects the record's voxels with its ``rot_mat``,
-``trans_mat`` and ``focal_length`` (perspective, as demo.py renders; the voxel cube's unknown size in model
-units is fitted so that the projection is as large as the mask) and compares the silhouette with the mask,
-both cropped to their bounding boxes (padded to squares) and resampled to the same grid. It tests items 1
-and 2, i.e. that ``voxel.mat`` and ``rot_mat`` are combined the right way round: a swapped or mirrored voxel axis, a
-transposed rotation or a mirrored image lowers the IoU. Item 3 is a convention no photograph can check (a
-turn applied to both the voxels and the camera cancels); :attr:`Pix3DDataset.yaw_offset` exists for it.
+**What the frame check checks.** :func:`lightning_vtr.evaluation.pix3d.frame_check` projects the record's
+voxels with its ``rot_mat``, ``trans_mat`` and ``focal_length`` and compares the silhouette with the mask. It
+tests items 1 and 2, i.e. that ``voxel.mat`` and ``rot_mat`` are combined the right way round: a swapped or
+mirrored voxel axis, a transposed rotation or a mirrored image lowers the IoU. Item 3 is a convention no
+photograph can check (a turn applied to both the voxels and the camera cancels); :attr:`Pix3DDataset.yaw_offset`
+exists for it.
 
 **Images.** :func:`crop_to_bbox` cuts a square around the annotated box: side ``(1 + 2 margin)`` times the
 box's longer side, centred on the box (``margin = 0.1`` by default, so the object spans about 83 % of the
@@ -58,8 +57,9 @@ marks a cell occupied when any source voxel in it is (Pix3D's evaluation max-poo
 legs a few 128^3 voxels thick survive), ``"mean"`` when at least half of them are (thinner, loses thin parts).
 
 **Evaluation.** :class:`Pix3DDataset` returns ``VTRDataset``'s batch dictionaries (one view per item), so
-:func:`~lightning_vtr.data.folder_eval.evaluate_dataset` and a model's ``test_step`` take it;
-:func:`evaluate_pix3d` is the loop, ``lightning-vtr pix3d`` the command (Table 5 layout). By default the
+:func:`~lightning_vtr.evaluation.dataset.evaluate_dataset` and a model's ``test_step`` take it;
+:func:`lightning_vtr.evaluation.pix3d.evaluate_pix3d` is the loop, ``lightning-vtr pix3d`` the command (Table 5
+layout). By default the
 photographs Pix3D's own evaluation list keeps are used: not truncated, not occluded, not slightly occluded.
 """
 
@@ -68,7 +68,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -95,9 +95,6 @@ __all__ = [
     "camera_rotation",
     "crop_to_bbox",
     "downsample_voxels",
-    "evaluate_pix3d",
-    "frame_check",
-    "frame_check_summary",
     "load_voxel_mat",
     "pix3d_viewpoint",
     "read_pix3d",
@@ -627,139 +624,3 @@ class Pix3DDataset(Dataset):
             "object_id": record.object_id,
             "view_set": self.view_set,
         }
-
-
-def evaluate_pix3d(model: Any, dataset: Pix3DDataset, **kwargs: Any) -> dict[str, Any]:
-    """:func:`~lightning_vtr.data.folder_eval.evaluate_dataset` on Pix3D: per category and overall."""
-    from lightning_vtr.data.folder_eval import evaluate_dataset
-
-    return evaluate_dataset(model, dataset, **kwargs)
-
-
-# ---------------------------------------------------------------------------------------------- frame check
-def _square_raster(rows: np.ndarray, cols: np.ndarray, size: int) -> np.ndarray:
-    """Mark the pixels of an ``size x size`` grid hit by points, the grid spanning their bounding box padded to
-    a centred square."""
-    r0, r1, c0, c1 = rows.min(), rows.max(), cols.min(), cols.max()
-    side = max(r1 - r0, c1 - c0) or 1.0
-    top, left = (r0 + r1) / 2.0 - side / 2.0, (c0 + c1) / 2.0 - side / 2.0
-    r = np.clip(((rows - top) / side * size).astype(int), 0, size - 1)
-    c = np.clip(((cols - left) / side * size).astype(int), 0, size - 1)
-    out = np.zeros((size, size), bool)
-    out[r, c] = True
-    return out
-
-
-def _mask_silhouette(mask: np.ndarray, size: int) -> np.ndarray:
-    rows, cols = np.nonzero(mask > 127)
-    if rows.size == 0:
-        return np.zeros((size, size), bool)
-    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-    side = max(r1 - r0, c1 - c0)
-    square = np.zeros((side, side), np.uint8)
-    top, left = (side - (r1 - r0)) // 2, (side - (c1 - c0)) // 2
-    square[top : top + r1 - r0, left : left + c1 - c0] = np.where(mask[r0:r1, c0:c1] > 127, 255, 0)
-    resized = np.asarray(Image.fromarray(square).resize((size, size), Image.BOX))
-    return resized >= 128
-
-
-def _project(
-    record: Pix3DRecord, voxel_to_model: np.ndarray, points: np.ndarray, mask: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Image ``(rows, cols)`` of voxel-frame points, up to a shift and a scale.
-
-    With a focal length and the object in front of the camera: perspective, the voxel cube's size ``s`` (model
-    units; unknown, as ``voxel.mat`` is normalised) fitted so that the projection's extent matches the mask's,
-    starting from the para-perspective estimate. Otherwise orthographic along the optical axis.
-    """
-    rotated = (BLENDER_TO_CAMERA @ record.rotation @ voxel_to_model @ points.T).T  # camera frame, about the origin
-    centre = BLENDER_TO_CAMERA @ record.translation
-    depth = -centre[2]
-    if record.focal_length is None or depth <= 0:
-        return -rotated[:, 1], rotated[:, 0]
-    focal = record.focal_length / 32.0 * mask.shape[1]  # pixels: demo.py's sensor is 32 mm wide
-    rows, cols = np.nonzero(mask > 127)
-    target = max(rows.max() - rows.min(), cols.max() - cols.min()) + 1.0
-    ortho = max(np.ptp(rotated[:, 0]), np.ptp(rotated[:, 1]))
-    scale = target * depth / (focal * ortho) if ortho > 0 else 1.0
-    for _ in range(6):  # fixed point: scale the cube until its perspective image is as large as the mask
-        camera = centre + scale * rotated
-        z = np.maximum(-camera[:, 2], 1e-6 * depth)
-        u, v = focal * camera[:, 0] / z, -focal * camera[:, 1] / z
-        extent = max(np.ptp(u), np.ptp(v))
-        if extent <= 0 or np.any(-camera[:, 2] <= 0):
-            break
-        scale *= target / extent
-    camera = centre + scale * rotated
-    if np.any(-camera[:, 2] <= 0):  # the fitted cube reaches behind the camera: fall back to para-perspective
-        x = rotated[:, 0] + centre[0] / depth * rotated[:, 2]
-        y = rotated[:, 1] + centre[1] / depth * rotated[:, 2]
-        return -y, x
-    z = -camera[:, 2]
-    return -camera[:, 1] / z, camera[:, 0] / z
-
-
-def frame_check(
-    record: Pix3DRecord,
-    *,
-    voxel_to_model: np.ndarray = VOXEL_TO_MODEL,
-    grid: int = 64,
-    size: int = 64,
-    return_silhouettes: bool = False,
-) -> float | tuple[float, np.ndarray, np.ndarray]:
-    """IoU between the record's mask and its voxels projected with ``rot_mat`` (see the module docstring).
-
-    The voxels (down-sampled to ``grid^3`` with ``pooling="max"``, ``fit=False``; the surface voxels, each
-    sampled at 64 points reaching its faces) are mapped to the model frame with ``voxel_to_model``, rotated by
-    ``rot_mat``, placed at ``trans_mat`` and projected with the record's focal length (demo.py's camera). The
-    size of the voxel cube in model units is not in the data, so it is fitted to make the projection as large
-    as the mask (a few fixed-point steps); without a focal length the projection is orthographic along the
-    optical axis. The projection and the mask are each cropped to their bounding box, padded to a centred
-    square and rasterised on ``size x size`` pixels.
-
-    Args:
-        record: a Pix3D photograph.
-        voxel_to_model: the voxel -> model frame map under test (default the derived :data:`VOXEL_TO_MODEL`).
-        grid: the voxel resolution of the projection.
-        size: the silhouettes' side in pixels.
-        return_silhouettes: also return the two ``(size, size)`` bool silhouettes (projection, mask).
-
-    Returns:
-        The IoU in ``[0, 1]`` (0 when the voxels or the mask are empty); above ~0.8 on an untruncated,
-        unoccluded photograph means the frames agree.
-    """
-    voxel_to_model = np.asarray(voxel_to_model, dtype=np.float64)
-    if voxel_to_model.shape != (3, 3):
-        raise ValueError(f"`voxel_to_model` must be 3x3, got shape {voxel_to_model.shape}")
-    raw = load_voxel_mat(record.voxel_path)
-    image = _read_image(record.image_path)
-    mask = _read_mask(record.mask_path, image.shape[:2], record.image_path)
-    silhouette = _mask_silhouette(mask, size)
-    small = downsample_voxels(raw, min(grid, raw.shape[0]), fit=False, pooling="max")
-    padded = np.pad(small, 1)
-    inner = padded[1:-1, 1:-1, 1:-1]
-    for axis in range(3):  # a voxel with all six neighbours occupied cannot change the silhouette
-        for shift in (-1, 1):
-            inner = inner & np.roll(padded, shift, axis)[1:-1, 1:-1, 1:-1]
-    cells = np.argwhere(small & ~inner)
-    if cells.size == 0 or not silhouette.any():
-        empty = np.zeros((size, size), bool)
-        return (0.0, empty, silhouette) if return_silhouettes else 0.0
-    n = small.shape[0]
-    steps = np.array([-0.5, -1.0 / 6.0, 1.0 / 6.0, 0.5])  # faces and thirds: no gaps, the true extent
-    offsets = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
-    points = ((cells[:, None, :] + 0.5 + offsets[None]) / n - 0.5).reshape(-1, 3)  # voxel frame
-    rows, cols = _project(record, voxel_to_model, points, mask)
-    projection = _square_raster(rows, cols, size)
-    union = np.logical_or(projection, silhouette).sum()
-    iou = float(np.logical_and(projection, silhouette).sum() / union) if union else 0.0
-    return (iou, projection, silhouette) if return_silhouettes else iou
-
-
-def frame_check_summary(ious: Mapping[str, float]) -> str:
-    """One line: count, mean and minimum of frame-check IoUs, and the worst record."""
-    if not ious:
-        return "frame check: no records"
-    worst = min(ious, key=ious.get)
-    values = np.fromiter(ious.values(), float)
-    return f"frame check on {len(values)} record(s): mean IoU {values.mean():.3f}, min {values.min():.3f} ({worst})"

@@ -16,11 +16,12 @@ from PIL import Image
 
 from lightning_vtr.cli import main
 from lightning_vtr.cli.dispatch import goes_to_lightning
-from lightning_vtr.cli.predict import load_model, read_view_folder
 from lightning_vtr.data.binvox import read_binvox, write_binvox
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.evaluation.predict import read_view_folder
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+from lightning_vtr.models.registry import load_model
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 BLOCK = np.zeros((32, 32, 32), np.float32)

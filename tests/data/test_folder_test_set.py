@@ -13,15 +13,10 @@ from helpers import one_thread
 from PIL import Image
 
 from lightning_vtr.data.binvox import write_binvox
-from lightning_vtr.data.folder_eval import (
-    FolderTestSet,
-    choose_views,
-    evaluate_folder,
-    evaluation_rows,
-    format_evaluation_table,
-)
+from lightning_vtr.data.folder_test_set import FolderTestSet, choose_views
 from lightning_vtr.data.shapenet_rendering import ShapeNetRenderingSource
 from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.evaluation.dataset import evaluate_folder, evaluation_rows, format_evaluation_table
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 RAW = ImageTransform(8, normalize=None)  # 8 px pictures stay 8 px: pixel values come through unchanged

@@ -22,8 +22,6 @@ from lightning_vtr.data.pix3d import (
     camera_rotation,
     crop_to_bbox,
     downsample_voxels,
-    evaluate_pix3d,
-    frame_check,
     load_voxel_mat,
     pix3d_viewpoint,
     read_pix3d,
@@ -31,6 +29,7 @@ from lightning_vtr.data.pix3d import (
     yaw_rotation,
 )
 from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.evaluation.pix3d import evaluate_pix3d, frame_check
 from lightning_vtr.geometry import camera_basis, orthographic_pixel_coords
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
@@ -196,7 +195,7 @@ def silhouette_iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def package_projection(voxels: np.ndarray, viewpoint, size: int) -> np.ndarray:
     """The package's own orthographic projection of a package-frame grid, cropped to its bounding box."""
-    from lightning_vtr.data.pix3d import _square_raster
+    from lightning_vtr.evaluation.pix3d import _square_raster
 
     r = voxels.shape[0]
     c = (torch.arange(r, dtype=torch.float64) + 0.5) / r - 0.5
@@ -208,7 +207,7 @@ def package_projection(voxels: np.ndarray, viewpoint, size: int) -> np.ndarray:
 
 
 def test_package_frame_voxels_seen_from_the_viewpoint_match_the_mask(tmp_path):
-    from lightning_vtr.data.pix3d import _mask_silhouette
+    from lightning_vtr.evaluation.pix3d import _mask_silhouette
 
     views = [(30.0, 20.0), (-120.0, 35.0), (75.0, -10.0)]
     # Far away with a long lens: nearly orthographic, as the package's projection is.
