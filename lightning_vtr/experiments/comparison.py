@@ -14,45 +14,45 @@ import time
 from typing import Any
 
 from lightning_vtr.evaluation.tables import format_robustness_table
-from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, ExperimentConfig, pretrain, run_strategy
+from lightning_vtr.experiments.config import ExperimentConfig
+from lightning_vtr.experiments.flags import add_config_arguments, config_from_arguments
+from lightning_vtr.experiments.training import MODELS, pretrain, run_strategy
 from lightning_vtr.utils.validation import check_choice
 
-__all__ = ["MODEL_TITLES", "add_comparison_arguments", "compare", "run_comparison"]
+__all__ = ["MODEL_TITLES", "add_comparison_arguments", "compare", "comparison_defaults", "run_comparison"]
 
 #: Printed name of each model of :data:`~lightning_vtr.experiments.training.MODELS`.
 MODEL_TITLES: dict[str, str] = {"pix2vox": "Pix2Vox++", "lrgt": "LRGT"}
+#: ExperimentConfig fields without a flag here: the example fixes the model.
+_EXCLUDED = ("model",)
+
+
+def comparison_defaults(model: str) -> ExperimentConfig:
+    """The comparison's experiment before any flag: ExperimentConfig's defaults, ``model`` and ``out``
+    ``runs/<model>_vtr``.
+
+    Raises:
+        ValueError: ``model`` is not in :data:`~lightning_vtr.experiments.training.MODELS`.
+    """
+    check_choice("model", model, MODELS)
+    return ExperimentConfig(model=model, out=f"runs/{model}_vtr")
 
 
 def add_comparison_arguments(parser: argparse.ArgumentParser, model: str) -> argparse.ArgumentParser:
-    """Add the flags of :func:`run_comparison` to ``parser`` (``--out`` defaults to ``runs/<model>_vtr``)."""
-    check_choice("model", model, MODELS)
-    add = parser.add_argument
-    add("--preset", default="tiny", choices=["tiny", "paper"])
-    add("--data", default=None, help="ShapeNet-VTR directory (default: the embedded procedural dataset)")
-    add("--pretrain-epochs", type=int, default=16)
-    add("--finetune-epochs", type=int, default=12)
-    # Small batches: the embedded dataset has 210 training objects, and the tiny model needs optimizer steps.
-    add("--batch-size", type=int, default=8)
-    add("--num-workers", type=int, default=0)
-    add("--fraction", type=float, default=0.05, help="share of training objects searched per epoch")
-    add(
-        "--finetune-lr",
-        default=FINETUNE_LR_SCHEDULES[0],
-        choices=FINETUNE_LR_SCHEDULES,
-        help="fine-tuning learning rate: annealed to 0, or the model's own schedule",
+    """Add the flags of :func:`run_comparison` to ``parser``: one per field of
+    :class:`~lightning_vtr.experiments.config.ExperimentConfig` but ``model``, defaulting to
+    :func:`comparison_defaults`, and ``--zero123``.
+
+    Returns:
+        ``parser``.
+
+    Raises:
+        ValueError: ``model`` is not in :data:`~lightning_vtr.experiments.training.MODELS`.
+    """
+    add_config_arguments(parser, comparison_defaults(model), exclude=_EXCLUDED)
+    parser.add_argument(
+        "--zero123", default=None, help="local Zero-1-to-3 diffusers directory (default: render the meshes)"
     )
-    add(
-        "--recipe",
-        default="plain",
-        help="training-image recipe: plain (white background, ImageNet normalisation), reference (the model's "
-        "published recipe), or pix2vox / lrgt",
-    )
-    add("--seed", type=int, default=0)
-    add("--accelerator", default="auto")
-    add("--devices", default="1")
-    add("--precision", default="32-true")
-    add("--zero123", default=None, help="local Zero-1-to-3 diffusers directory (default: render the meshes)")
-    add("--out", default=f"runs/{model}_vtr")
     return parser
 
 
@@ -85,24 +85,7 @@ def run_comparison(args: argparse.Namespace, model: str, **model_kwargs: Any) ->
 
     ``model_kwargs`` are further arguments of the model class (``ExperimentConfig.model_kwargs``).
     """
-    config = ExperimentConfig(
-        model=model,
-        preset=args.preset,
-        data=args.data,
-        pretrain_epochs=args.pretrain_epochs,
-        finetune_epochs=args.finetune_epochs,
-        batch_size=args.batch_size,
-        num_workers=args.num_workers,
-        fraction=args.fraction,
-        finetune_lr=args.finetune_lr,
-        recipe=args.recipe,
-        seed=args.seed,
-        accelerator=args.accelerator,
-        devices=args.devices,
-        precision=args.precision,
-        out=args.out,
-        model_kwargs=model_kwargs,
-    )
+    config = config_from_arguments(args, comparison_defaults(model), exclude=_EXCLUDED, model_kwargs=model_kwargs)
     synthesizer = None
     if args.zero123:
         from lightning_vtr.synthesis.zero123 import Zero123Synthesizer

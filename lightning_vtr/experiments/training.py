@@ -2,6 +2,8 @@
 
 Used by ``examples/*.py`` and ``lightning-vtr report``. Every run writes ``results.json`` into its own
 directory and is skipped when that file exists, so a killed experiment re-run resumes where it stopped.
+The configuration is :class:`~lightning_vtr.experiments.config.ExperimentConfig`; the named view strategies
+are the rows of :data:`~lightning_vtr.experiments.strategies.VARIANTS`.
 """
 
 from __future__ import annotations
@@ -10,25 +12,22 @@ import inspect
 import json
 import math
 import time
-import warnings
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import lightning as L
 import torch
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
-from lightning_vtr.data import IMAGE_RECIPES
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation.tables import results_from_test_output
+from lightning_vtr.experiments.config import FINETUNE_LR_SCHEDULES, ExperimentConfig
+from lightning_vtr.experiments.strategies import STRATEGIES, VARIANTS, StrategyVariant
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 from lightning_vtr.models.registry import MODELS
 from lightning_vtr.selection import SELECTORS, make_selector
-from lightning_vtr.utils.deprecation import renamed_argument
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_choice, check_int
 
@@ -42,261 +41,16 @@ __all__ = [
     "StageTimer",
     "StrategyVariant",
     "evaluate",
+    "load_run_model",
     "make_datamodule",
     "make_model",
     "make_strategy",
     "pretrain",
     "resolved_strategy",
     "run_strategy",
+    "training_objects",
+    "validate_run",
 ]
-
-#: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
-FINETUNE_LR_SCHEDULES = ("cosine", "constant")
-#: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
-#: :data:`lightning_vtr.selection.SELECTORS` with its defaults. Each is a name in :data:`VARIANTS`, which
-#: :func:`make_strategy` takes.
-STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
-
-
-@dataclass(frozen=True)
-class StrategyVariant:
-    """A named view strategy: a selector of :data:`lightning_vtr.selection.SELECTORS` and its settings.
-
-    Attributes:
-        selector: the selector's registry name; ``None`` for no augmentation (no callback).
-        selector_kwargs: arguments of the selector class.
-        callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`.
-        title: the row title in the report's tables.
-    """
-
-    selector: str | None
-    selector_kwargs: Mapping[str, Any] = field(default_factory=dict)
-    callback_kwargs: Mapping[str, Any] = field(default_factory=dict)
-    title: str = ""
-
-    def __post_init__(self) -> None:
-        if self.selector is not None:
-            check_choice("selector", self.selector, SELECTORS)
-        # read-only copies: a registry entry cannot be changed through a caller's dict
-        object.__setattr__(self, "selector_kwargs", MappingProxyType(dict(self.selector_kwargs)))
-        object.__setattr__(self, "callback_kwargs", MappingProxyType(dict(self.callback_kwargs)))
-
-
-_VISIBLE_NMS = {"score": "visible", "min_separation": 30.0}
-# the released code's search: 35 % of the objects scored into a pool rebuilt at every selection
-_SEARCHED = {"search_fraction": 0.35, "pool_refresh": True}
-# a larger, fresh budget at the default's cost: 20 % of the objects given new views per selection, and only the
-# latest selection's samples kept (34 = 20 % of the embedded dataset's 170 training objects), so every epoch
-# trains on views chosen from the current model; fewer generated sample-epochs (340) than the default's 440
-_FRESH = {"fraction": 0.2, "max_samples": 34}
-#: Strategy name -> :class:`StrategyVariant`, in the report's row order: the paper's Table 1 strategies
-#: (:data:`STRATEGIES`, each selector with its package defaults, so ``"error_guided"`` is whatever
-#: ``ErrorGuidedSelector()`` and ``ErrorGuidedViewAugmentation()`` default to), the second random baseline,
-#: the paper's exact rule, and the variants of the error-guided method compared to pick its default:
-#:
-#: * ``"random"``: angle-uniform views (uniform yaw and pitch, the released code's sampler); ``"random_area"``:
-#:   uniform on the sphere;
-#: * ``"paper"``: the paper's score (binary error summed over the first-hit map), hard top-n bins, a
-#:   per-category pool that keeps every selection and prefers other objects' view sets, the first selection
-#:   from the pretrained model, as many objects searched as given views;
-#: * ``"released"``: the released code's score (soft error in ground-truth voxels, mean over hit pixels) and
-#:   pool (rebuilt every selection, sampled among all objects' sets) and a search over 35 % of the objects;
-#: * ``"visible"``: the side-aware score of what a camera would see wrong; ``"visible_nms"``: with non-maximum
-#:   suppression of bins within 30 degrees of a chosen one or of its antipode; ``"visible_tau"``: the same
-#:   suppression, bins sampled with probability proportional to solid angle x score (temperature 1) instead
-#:   of the hard top n; ``"visible_tau3"``: the same at temperature 3 (closer to area-uniform random);
-#:   ``"visible_nms_search"``, ``"visible_tau_search"`` and ``"visible_tau3_search"``: ``"visible_nms"``,
-#:   ``"visible_tau"`` and ``"visible_tau3"`` searching 35 % of the objects into a pool rebuilt at every selection;
-#:   ``"visible_tau10_search"``: the same at temperature 10; ``"visible_tau3_search_own"``: ``"visible_tau3_search"``
-#:   sampling each object's view set among all of its category's, its own included; ``"visible_tau3_search_error"``:
-#:   ``"visible_tau3_search"`` giving the new views to the searched objects with the largest error;
-#:   ``"visible_rel_search"`` and ``"visible_rel_tau_search"``: ``"visible_nms_search"`` and ``"visible_tau_search"``
-#:   with scores relative to the category's mean per view (``ErrorGuidedSelector(relative=True)``);
-#: * ``"input_nms"`` and ``"input_tau"``: the input-side score (``ErrorGuidedSelector(score="input")``: the model's
-#:   loss given the object's image from each bin centre alone) with 30-degree suppression, hard top n and
-#:   temperature 1, each object trained on its own selection (no pool);
-#: * ``"random_fresh"``, ``"random_area_fresh"``, ``"visible_tau3_search_fresh"`` and ``"visible_tau10_search_fresh"``:
-#:   ``"random"``, ``"random_area"``, ``"visible_tau3_search"`` and ``"visible_tau10_search"`` giving 20 % of the
-#:   objects new views per selection and keeping only the latest selection's samples (sized for the embedded
-#:   dataset), whatever the report's ``fraction``.
-#:
-#: :func:`make_strategy` and :func:`run_strategy` take these names; their ``selector_kwargs`` and
-#: ``callback_kwargs`` go over the variant's.
-VARIANTS: dict[str, StrategyVariant] = {
-    "none": StrategyVariant(None, title="None-VTR"),
-    "nature": StrategyVariant("nature", title="Nature"),
-    "random": StrategyVariant("random", {"mode": "angle"}, title="Random"),
-    "random_area": StrategyVariant("random", {"mode": "area"}, title="Random (area-uniform)"),
-    "viat": StrategyVariant("viat", title="VIAT"),
-    "mvtn": StrategyVariant("mvtn", title="MVTN"),
-    "error_guided": StrategyVariant("error_guided", title="Ours"),
-    "paper": StrategyVariant(
-        "error_guided",
-        {"score": "paper", "min_separation": None, "temperature": None},
-        {
-            "use_pool": True,
-            "pool_capacity": None,
-            "pool_refresh": False,
-            "pool_prefer_others": True,
-            "select_at_start": True,
-            "search_fraction": None,
-        },
-        title="Ours (paper rule)",
-    ),
-    "released": StrategyVariant(
-        "error_guided",
-        {"score": "released"},
-        {"pool_refresh": True, "pool_prefer_others": False, "search_fraction": 0.35},
-        title="Released-code rule",
-    ),
-    "visible": StrategyVariant("error_guided", {"score": "visible"}, title="Visible"),
-    "visible_nms": StrategyVariant("error_guided", _VISIBLE_NMS, title="Visible + NMS"),
-    "visible_tau": StrategyVariant("error_guided", {**_VISIBLE_NMS, "temperature": 1.0}, title="Visible + NMS, tau 1"),
-    "visible_tau3": StrategyVariant("error_guided", {**_VISIBLE_NMS, "temperature": 3.0}, title="Visible + NMS, tau 3"),
-    "visible_nms_search": StrategyVariant(
-        "error_guided",
-        _VISIBLE_NMS,
-        _SEARCHED,
-        title="Visible + NMS, search 35 %",
-    ),
-    "visible_tau_search": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 1.0},
-        _SEARCHED,
-        title="Visible + NMS, tau 1, search 35 %",
-    ),
-    "visible_tau3_search": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 3.0},
-        _SEARCHED,
-        title="Visible + NMS, tau 3, search 35 %",
-    ),
-    "visible_tau10_search": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 10.0},
-        _SEARCHED,
-        title="Visible + NMS, tau 10, search 35 %",
-    ),
-    "visible_tau3_search_own": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 3.0},
-        {**_SEARCHED, "pool_prefer_others": False},
-        title="Visible + NMS, tau 3, search 35 %, own sets too",
-    ),
-    "visible_tau3_search_error": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 3.0},
-        {**_SEARCHED, "generate_for": "error"},
-        title="Visible + NMS, tau 3, search 35 %, worst objects",
-    ),
-    "visible_rel_search": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "relative": True},
-        _SEARCHED,
-        title="Visible relative to category + NMS, search 35 %",
-    ),
-    "visible_rel_tau_search": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "relative": True, "temperature": 1.0},
-        _SEARCHED,
-        title="Visible relative to category + NMS, tau 1, search 35 %",
-    ),
-    "input_nms": StrategyVariant(
-        "error_guided", {"score": "input", "min_separation": 30.0}, {"use_pool": False}, title="Input + NMS"
-    ),
-    "input_tau": StrategyVariant(
-        "error_guided",
-        {"score": "input", "min_separation": 30.0, "temperature": 1.0},
-        {"use_pool": False},
-        title="Input + NMS, tau 1",
-    ),
-    "random_fresh": StrategyVariant("random", {"mode": "angle"}, _FRESH, title="Random, 20 % fresh"),
-    "random_area_fresh": StrategyVariant("random", {"mode": "area"}, _FRESH, title="Random (area-uniform), 20 % fresh"),
-    "visible_tau3_search_fresh": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 3.0},
-        {**_SEARCHED, **_FRESH},
-        title="Visible + NMS, tau 3, search 35 %, 20 % fresh",
-    ),
-    "visible_tau10_search_fresh": StrategyVariant(
-        "error_guided",
-        {**_VISIBLE_NMS, "temperature": 10.0},
-        {**_SEARCHED, **_FRESH},
-        title="Visible + NMS, tau 10, search 35 %, 20 % fresh",
-    ),
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name == "MODEL_CLASSES":  # the model names before 0.2
-        warnings.warn(
-            "`MODEL_CLASSES` is deprecated and will be removed in 0.3; use the keys of `MODELS`.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return tuple(MODELS)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-@dataclass
-class ExperimentConfig:
-    """One experiment's budget and settings.
-
-    Attributes:
-        model: a name in :data:`MODELS` (``"pix2vox"`` or ``"lrgt"``).
-        preset: the model preset (``"tiny"`` on a laptop, ``"paper"`` for the published configuration).
-        data: a ShapeNet-VTR directory; ``None`` uses the embedded procedural dataset.
-        pretrain_epochs: epochs on Aligned before any view strategy (the paper's pre-trained model).
-        finetune_epochs: epochs of fine-tuning, the same for every strategy (including none).
-        batch_size, num_workers, seed: as usual. ``image_size`` ``None`` takes the preset's.
-        fraction: share of training objects the callback gives new views per selection (its ``fraction``).
-        accelerator, devices, precision: passed to the Trainer; ``devices`` given as a string of digits
-            (from a command line) becomes an int.
-        out: where runs are written.
-        recipe: the training images' recipe (``VTRDataModule(recipe=...)``): ``"plain"`` (composite on white,
-            ImageNet normalisation; the default, as in 0.1), ``"reference"`` (the model's published recipe, its
-            class's ``image_recipe``: ``"pix2vox"`` or ``"lrgt"``) or a name of
-            :data:`~lightning_vtr.data.IMAGE_RECIPES`.
-        test_repeats: view sets per test object, each a fixed choice of the model's ``num_views`` views of the
-            tested view set (``VTRDataModule(test_repeats=...)``); the same for every strategy of a seed, so
-            differences between strategies are paired. More repeats cut the variance of a test mean cheaply.
-        embedded: options of the embedded procedural dataset (``data=None``).
-        finetune_lr: learning-rate schedule of fine-tuning, the same for every strategy: ``"cosine"``
-            anneals each parameter group's rate from the model's own value to 0 over ``finetune_epochs``
-            (:class:`CosineFineTuning`), so the tested weights are not one noisy step of a constant rate;
-            ``"constant"`` keeps the model's scheduler.
-        model_kwargs: extra arguments of the model class.
-        trainer_kwargs: extra ``L.Trainer`` arguments of every fit and test (e.g. ``limit_train_batches``);
-            they override this module's defaults, except ``devices=1`` of the evaluation.
-    """
-
-    model: str = "pix2vox"
-    preset: str = "tiny"
-    data: str | None = None
-    pretrain_epochs: int = 12
-    finetune_epochs: int = 12
-    batch_size: int = 16
-    num_workers: int = 0
-    image_size: int | None = None
-    fraction: float = 0.05
-    seed: int = 0
-    accelerator: str = "auto"
-    devices: int | str = 1
-    precision: str = "32-true"
-    finetune_lr: str = "cosine"
-    test_repeats: int = 1
-    recipe: str = "plain"
-    out: str = "runs/vtr"
-    embedded: dict[str, Any] = field(default_factory=dict)
-    model_kwargs: dict[str, Any] = field(default_factory=dict)
-    trainer_kwargs: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        check_choice("finetune_lr", self.finetune_lr, FINETUNE_LR_SCHEDULES)
-        check_choice("recipe", self.recipe, ("reference", *IMAGE_RECIPES))
-        check_int("test_repeats", self.test_repeats, minimum=1)
-        if isinstance(self.devices, str) and self.devices.isdigit():
-            self.devices = int(self.devices)
 
 
 class CosineFineTuning(L.Callback):
@@ -472,18 +226,17 @@ def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelR
     return model_class(preset=config.preset, **kwargs)
 
 
-def make_datamodule(
-    config: ExperimentConfig,
-    model: L.LightningModule,
-    num_views: int | None = None,
-    *,
-    n_views: int | None = None,
-) -> VTRDataModule:
-    """The experiment's datamodule; ``num_views`` ``None`` takes the model's (tests with another count need it).
+def make_datamodule(config: ExperimentConfig, model: L.LightningModule, num_views: int | None = None) -> VTRDataModule:
+    """The experiment's datamodule.
 
-    ``n_views`` is the deprecated name of ``num_views`` (removed in 0.3).
+    Args:
+        config: supplies the data, batch size, workers, seed, test repeats, embedded options and recipe.
+        model: supplies the view count and image size (unless ``config.image_size`` is set).
+        num_views: input views per item; ``None`` takes the model's.
+
+    Returns:
+        A :class:`~lightning_vtr.data.datamodule.VTRDataModule`, not set up.
     """
-    num_views = renamed_argument("n_views", n_views, "num_views", num_views)
     return VTRDataModule(
         config.data,
         num_views=num_views or model.num_views,
@@ -588,55 +341,114 @@ def _write_timing(path: Path, timer: StageTimer, **extra: Any) -> None:
     atomic_write(path, json.dumps({"seconds": timer.seconds, **extra}, indent=1))
 
 
+def training_objects(config: ExperimentConfig) -> int:
+    """The number of training objects of the experiment's dataset (its ``metadata.json``).
+
+    Args:
+        config: ``data`` names the dataset; ``None`` is the embedded one (built with ``embedded`` when missing).
+
+    Returns:
+        How many objects the dataset's ``train`` split holds (170 for the embedded dataset's defaults).
+
+    Raises:
+        DatasetNotFoundError: ``config.data`` holds no ``metadata.json``.
+    """
+    from lightning_vtr.data.format import load_metadata
+
+    if config.data is None:
+        from lightning_vtr.data.builder import ensure_embedded_dataset
+
+        root = Path(ensure_embedded_dataset(**config.embedded))
+    else:
+        root = Path(config.data).expanduser()
+    return sum(1 for info in load_metadata(root)["objects"].values() if info.get("split") == "train")
+
+
 def make_strategy(
     name: str,
     config: ExperimentConfig,
     synthesizer: Any = None,
     selector_kwargs: dict[str, Any] | None = None,
     callback_kwargs: dict[str, Any] | None = None,
+    *,
+    train_objects: int | None = None,
+    variants: dict[str, StrategyVariant] | None = None,
 ) -> L.Callback | None:
-    """The callback of a named view strategy of :data:`VARIANTS` (``None`` for ``"none"``).
+    """The callback of a named view strategy (``None`` for ``"none"``).
 
     Args:
-        name: a name in :data:`VARIANTS`: ``"none"``, a strategy of the paper's Table 1 (``"nature"``,
+        name: a name in ``variants``: ``"none"``, a strategy of the paper's Table 1 (``"nature"``,
             ``"random"``, ``"viat"``, ``"mvtn"``, ``"error_guided"``), ``"random_area"``, ``"paper"`` or a
             variant of the error-guided method (``"released"``, ``"visible"``, ...).
-        config: supplies ``fraction`` and ``seed`` of the callback.
+        config: supplies ``fraction`` and ``seed`` of the callback, and the dataset of a row's
+            ``max_samples_fraction``.
         synthesizer: the callback's synthesizer (``None``: mesh rendering).
         selector_kwargs: arguments of the selector class, over the variant's (e.g. ``{"k": 15}`` for
             error-guided).
         callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, over the
             variant's and the config's (e.g. ``{"use_pool": False}``).
+        train_objects: the dataset's training objects, for a row's ``max_samples_fraction``; ``None`` counts
+            them (:func:`training_objects`) when the row needs it.
+        variants: the named strategies (:func:`~lightning_vtr.experiments.strategies.load_variants`); default
+            :data:`VARIANTS`.
+
+    Returns:
+        An :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, or ``None`` for a row without selector.
 
     Raises:
-        ValueError: ``name`` is not in :data:`VARIANTS`.
+        ValueError: ``name`` is not in ``variants``.
+
+    Example::
+
+        callback = make_strategy("visible_nms", ExperimentConfig(fraction=0.1), selector_kwargs={"k": 15})
     """
-    variant = VARIANTS[check_choice("name", name, VARIANTS)]
+    variants = VARIANTS if variants is None else variants
+    variant = variants[check_choice("name", name, variants)]
     if variant.selector is None:
         return None
     selector = make_selector(variant.selector, **{**variant.selector_kwargs, **(selector_kwargs or {})})
     options = {"fraction": config.fraction, "seed": config.seed, **variant.callback_kwargs, **(callback_kwargs or {})}
+    if variant.max_samples_fraction is not None and "max_samples" not in options:
+        options["max_samples"] = variant.max_samples(
+            training_objects(config) if train_objects is None else train_objects
+        )
     return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
 
 
 def resolved_strategy(
-    name: str, selector_kwargs: dict[str, Any] | None = None, callback_kwargs: dict[str, Any] | None = None
+    name: str,
+    selector_kwargs: dict[str, Any] | None = None,
+    callback_kwargs: dict[str, Any] | None = None,
+    *,
+    variants: dict[str, StrategyVariant] | None = None,
 ) -> dict[str, Any] | None:
     """Every argument :func:`make_strategy` would give the selector and the callback, defaults filled in.
 
     Two strategies with equal resolved forms train the same run (the callback's default and ``"paper"`` while the
-    default is the paper's rule), so the report fits it once. ``None`` for ``"none"``.
+    default is the paper's rule), so the report fits it once. A row's ``max_samples_fraction`` stays a fraction
+    (``callback_kwargs["max_samples_fraction"]``) unless ``callback_kwargs`` give ``max_samples``.
+
+    Args:
+        name: a name in ``variants``.
+        selector_kwargs, callback_kwargs: as for :func:`make_strategy`.
+        variants: the named strategies; default :data:`VARIANTS`.
+
+    Returns:
+        ``{"selector": name, "selector_kwargs": {...}, "callback_kwargs": {...}}``; ``None`` for a row without
+        selector.
 
     Raises:
-        ValueError: ``name`` is not in :data:`VARIANTS`.
+        ValueError: ``name`` is not in ``variants``.
     """
-    variant = VARIANTS[check_choice("name", name, VARIANTS)]
+    variants = VARIANTS if variants is None else variants
+    variant = variants[check_choice("name", name, variants)]
     if variant.selector is None:
         return None
     selector_class = SELECTORS[variant.selector]
     selector = inspect.signature(selector_class).bind_partial(**{**variant.selector_kwargs, **(selector_kwargs or {})})
     selector.apply_defaults()
     options = {**variant.callback_kwargs, **(callback_kwargs or {})}
+    capped = variant.max_samples_fraction is not None and "max_samples" not in options
     callback = inspect.signature(ErrorGuidedViewAugmentation).bind_partial(**options)
     callback.apply_defaults()
     arguments = {k: v for k, v in callback.arguments.items() if k not in ("selector", "synthesizer")}
@@ -644,6 +456,8 @@ def resolved_strategy(
         arguments["use_pool"] = selector_class.uses_pool
     if arguments.get("search_fraction") is None:  # the callback's default: search as many as given views
         arguments["search_fraction"] = arguments["fraction"]
+    if capped:
+        arguments["max_samples_fraction"] = variant.max_samples_fraction
     return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
 
 

@@ -47,7 +47,7 @@ def test_cli_builds_the_report_config(captured):
         "none,viat,visible_nms",
         "--ablations",
         "k,single_view",
-        "--test-triplets",
+        "--test-repeats",
         "2",
         "--fraction",
         "0.1",
@@ -92,13 +92,13 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert config.strategies == list(MAIN_STRATEGIES) == ["none", "random", "error_guided", "paper"]
     assert config.ablations == [] and config.seeds == [0, 1, 2]
     assert config.experiment.test_repeats == 4
-    # Old command lines: --no-ablations is the default now, still accepted; --test-repeats names --test-triplets.
+    # Old command lines: --no-ablations is the default now, still accepted.
     assert main(["report", "--no-ablations", "--test-repeats", "3"]) == 0
     assert captured[-1].ablations == [] and captured[-1].experiment.test_repeats == 3
     assert config.experiment.recipe == "plain"
     assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
-    assert config.validation_triplets is None
-    assert main(["report", "--validation-triplets", "12"]) == 0 and captured[-1].validation_triplets == 12
+    assert config.validation_repeats is None
+    assert main(["report", "--validation-repeats", "12"]) == 0 and captured[-1].validation_repeats == 12
     assert config.jobs == 1
     assert main(["report", "--jobs", "2"]) == 0 and captured[-1].jobs == 2
 
@@ -109,8 +109,8 @@ def test_cli_defaults_are_the_report_defaults(captured):
         (["--strategies", "none,ours"], "invalid choice(s) 'ours'"),
         (["--ablations", "k,dropout"], "invalid choice(s) 'dropout'"),
         (["--ablations", "k", "--no-ablations"], "not allowed with argument"),
-        (["--test-triplets", "0"], "positive integer"),
-        (["--validation-triplets", "0"], "positive integer"),
+        (["--test-repeats", "0"], "positive integer"),
+        (["--validation-repeats", "0"], "positive integer"),
         (["--jobs", "0"], "positive integer"),
         (["--model", "unet"], "invalid choice: 'unet'"),
         (["--finetune-lr", "linear"], "invalid choice: 'linear'"),
@@ -122,3 +122,34 @@ def test_cli_rejects_unknown_names_before_running(captured, capsys, argv, messag
     assert main(["report", *argv]) == 2
     assert message in capsys.readouterr().err
     assert captured == []
+
+
+def test_list_strategies_prints_one_line_per_row_and_runs_nothing(captured, capsys):
+    assert main(["report", "--list-strategies"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == len(VARIANTS)
+    for line, (name, variant) in zip(lines, VARIANTS.items()):
+        assert line == f"{name}: {variant.title} - {variant.description}"
+    assert lines[0].startswith("none: None-VTR - ") and captured == []
+
+
+def test_every_flag_is_a_config_field_with_one_name_and_the_configs_default():
+    from dataclasses import fields
+
+    from lightning_vtr.experiments.training import ExperimentConfig
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    actions = {a.dest: a for a in parser._actions if a.dest != "help"}
+    experiment, report = default_experiment(), ReportConfig()
+    # every flag but the two switches sets the field of its name, under that one name
+    switches = {"no_ablations", "list_strategies"}
+    config_fields = {f.name for f in fields(ExperimentConfig)} | {f.name for f in fields(ReportConfig)}
+    assert set(actions) - switches <= config_fields
+    for dest, action in actions.items():
+        if dest not in switches:
+            assert action.option_strings == ["--" + dest.replace("_", "-")], dest
+    for name in ("model", "pretrain_epochs", "finetune_epochs", "batch_size", "test_repeats", "fraction", "out"):
+        assert actions[name].default == getattr(experiment, name)
+    assert actions["seeds"].default == list(report.seeds) and actions["jobs"].default == report.jobs
+    assert "seed" not in actions  # --seeds sets it

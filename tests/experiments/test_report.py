@@ -17,11 +17,11 @@ from lightning_vtr.experiments.report import (
     STRATEGIES,
     STRATEGY_TITLES,
     ReportConfig,
-    _plan,
-    _table,
     default_experiment,
     run_report,
 )
+from lightning_vtr.experiments.report_plan import plan_runs as _plan
+from lightning_vtr.experiments.report_tables import robustness_table as _table
 from lightning_vtr.experiments.training import VARIANTS, ExperimentConfig
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.selection import SELECTORS
@@ -326,7 +326,7 @@ def test_config_rejects_wrong_types():
 
 def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatch):
     """Stubbed runs with distinct values per (run, seed, view set, metric): each cell must find its own."""
-    import lightning_vtr.experiments.report as report
+    import lightning_vtr.experiments.report_run as report_run
     from lightning_vtr.experiments.statistics import mean_estimate
 
     names = [
@@ -364,7 +364,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     monkeypatch.setattr(
         experiment, "run_strategy", lambda name, config, pretrained, run_name, **kw: payload(run_name, config.seed)
     )
-    monkeypatch.setattr(report, "_single_view", lambda run, exp, source: payload(run.name, exp.seed))
+    monkeypatch.setattr(report_run, "single_view", lambda run, exp, source: payload(run.name, exp.seed))
     config = ReportConfig(
         default_experiment(out=str(tmp_path / "r")),
         seeds=[0, 2],
@@ -438,7 +438,7 @@ _OWN_PAPER_RUN = {"paper": {"sigma": 4.0}}
 def _stub_runs(monkeypatch, tmp_path, iou: dict[str, dict[int, float]], views=None, timing=None):
     """Stub pretraining and fine-tuning: run ``r`` of seed ``s`` scores ``iou[r][s]`` on every view set (F-score
     half of it); ``views[r][s]`` are written as its selection record, ``timing[r][s]`` as its measured stages."""
-    import lightning_vtr.experiments.report as report
+    import lightning_vtr.experiments.report_run as report_run
 
     def pretrain(config):
         directory = tmp_path / "r" / f"seed_{config.seed}" / "pretrain"
@@ -464,7 +464,7 @@ def _stub_runs(monkeypatch, tmp_path, iou: dict[str, dict[int, float]], views=No
 
     monkeypatch.setattr(experiment, "pretrain", pretrain)
     monkeypatch.setattr(experiment, "run_strategy", run_strategy)
-    monkeypatch.setattr(report, "_single_view", lambda run, exp, source: None)
+    monkeypatch.setattr(report_run, "single_view", lambda run, exp, source: None)
 
 
 def test_paired_differences_against_none_and_random_with_intervals_and_sign_agreement(tmp_path, monkeypatch):
@@ -661,7 +661,7 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
         return {v: {"iou@0.4": val_iou[run_dir.name][config.seed]} for v in VIEW_SETS}
 
     monkeypatch.setattr(experiment, "validate_run", validate_run)
-    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, validation_triplets=12)
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, validation_repeats=12)
     result = run_report(config)
     # error_guided and paper are one run while the default is the paper's rule: validated once per seed
     assert sorted(validated) == sorted((r, s, 12) for r in ("none", "random", "error_guided") for s in seeds)
@@ -674,14 +674,14 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
     # the test-split tables keep the test results (Ours +5 points over none on every seed there)
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
     assert rows["Ours"] == ["+5.00 [+5.00, +5.00], 3/3"] * 3
-    assert "--validation-triplets 12" in result["markdown"]
+    assert "--validation-repeats 12" in result["markdown"]
     assert result["validation_differences"]["random"]["Ours"]["spherical"].mean == pytest.approx(-0.02)
 
     validated.clear()
     plain = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
     assert validated == [] and "Validation split" not in plain["markdown"]
-    with pytest.raises(ValueError, match=r"`validation_triplets` must be an int >= 1, got 0"):
-        ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_triplets=0)
+    with pytest.raises(ValueError, match=r"`validation_repeats` must be an int >= 1, got 0"):
+        ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_repeats=0)
 
 
 def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_count(tiny_dataset, tmp_path, capfd):
@@ -704,7 +704,7 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
             seeds=[0, 1],
             strategies=["none", "error_guided", "paper"],
             callback_kwargs={"progress_bar": False},
-            validation_triplets=1,
+            validation_repeats=1,
             jobs=jobs,
         )
 

@@ -137,8 +137,7 @@ def test_models_registry_builds_each_model_class_with_its_preset():
         assert type(model) is cls
     with pytest.raises(ValueError, match="`model` must be one of 'pix2vox', 'lrgt', got 'unet'"):
         experiment.make_model(ExperimentConfig(model="unet"))
-    with pytest.warns(DeprecationWarning, match="MODEL_CLASSES"):
-        assert experiment.MODEL_CLASSES == ("pix2vox", "lrgt")
+    assert not hasattr(experiment, "MODEL_CLASSES")  # removed: the names are the keys of MODELS
 
 
 def test_fine_tuning_model_takes_no_weight_files_and_bce_refined_unless_asked(monkeypatch):
@@ -215,8 +214,8 @@ def test_make_datamodule_takes_the_model_view_count_or_num_views(tmp_path):
     dm = experiment.make_datamodule(config, model)
     assert (dm.num_views, dm.batch_size, dm.seed) == (model.num_views, 4, 5)
     assert experiment.make_datamodule(config, model, num_views=1).num_views == 1
-    with pytest.warns(DeprecationWarning, match="`n_views` was renamed `num_views`"):
-        assert experiment.make_datamodule(config, model, n_views=2).num_views == 2
+    with pytest.raises(TypeError, match="n_views"):  # the old name is gone
+        experiment.make_datamodule(config, model, n_views=2)
 
 
 def test_config_reads_a_device_count_from_a_command_line():
@@ -396,3 +395,22 @@ def test_validate_run_tests_the_final_weights_on_the_validation_objects_and_cach
     assert experiment.validate_run(config, run_dir, 2) == results and tested == []  # cached
     experiment.validate_run(config, run_dir, 1)  # another repeat count is recomputed
     assert tested == [("val", [3, 3, 3])]
+
+
+def test_the_fresh_rows_cap_scales_with_the_dataset_and_is_34_on_the_embedded_one(tiny_dataset):
+    from lightning_vtr.data.format import load_metadata
+
+    # the embedded dataset: 10 categories x 17 training objects; 20 % of them is the former fixed cap of 34
+    assert experiment.training_objects(ExperimentConfig()) == 170
+    assert experiment.VARIANTS["random_fresh"].max_samples(170) == 34
+    assert experiment.make_strategy("random_fresh", ExperimentConfig()).max_samples == 34
+    # another dataset, another cap: 20 % of its own training objects
+    tiny = ExperimentConfig(data=str(tiny_dataset))
+    count = sum(info["split"] == "train" for info in load_metadata(tiny_dataset)["objects"].values())
+    assert experiment.training_objects(tiny) == count == 21
+    assert experiment.make_strategy("visible_tau3_search_fresh", tiny).max_samples == round(0.2 * 21) == 4
+    # a given count or an explicit max_samples wins; rows without a cap have none
+    assert experiment.make_strategy("random_fresh", tiny, train_objects=1000).max_samples == 200
+    assert experiment.make_strategy("random_fresh", tiny, callback_kwargs={"max_samples": 7}).max_samples == 7
+    assert experiment.make_strategy("random", tiny).max_samples is None
+    assert experiment.resolved_strategy("random_fresh")["callback_kwargs"]["max_samples_fraction"] == 0.2

@@ -1,0 +1,159 @@
+"""Command-line flags from configuration dataclasses: one flag per field marked with
+:func:`~lightning_vtr.experiments.config.flag`, named after the field (``pretrain_epochs`` is
+``--pretrain-epochs``), defaulting to the value of the instance given.
+
+Example::
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, ExperimentConfig(out="runs/mine"), exclude=("seed",))
+    config = config_from_arguments(parser.parse_args(), ExperimentConfig(out="runs/mine"), exclude=("seed",))
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import types
+import typing
+from collections.abc import Collection, Sequence
+from typing import Any
+
+__all__ = ["add_config_arguments", "config_from_arguments", "flag_fields", "option"]
+
+
+def option(name: str) -> str:
+    """The flag of a field: ``"pretrain_epochs"`` -> ``"--pretrain-epochs"``."""
+    return "--" + name.replace("_", "-")
+
+
+def flag_fields(cls: type, exclude: Collection[str] = ()) -> list[dataclasses.Field]:
+    """The fields of dataclass ``cls`` that are flags (their ``metadata`` has ``"flag"``), less ``exclude``."""
+    return [f for f in dataclasses.fields(cls) if "flag" in f.metadata and f.name not in exclude]
+
+
+def _at_least(minimum: int) -> Any:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def _comma_separated(choices: Collection[str] | None) -> Any:
+    def parse(text: str) -> list[str]:
+        items = [item.strip() for item in text.split(",") if item.strip()]
+        if not items:
+            raise argparse.ArgumentTypeError(f"expected a comma-separated list, got {text!r}")
+        unknown = [item for item in items if choices is not None and item not in choices]
+        if unknown:
+            raise argparse.ArgumentTypeError(
+                f"invalid choice(s) {', '.join(map(repr, unknown))} (choose from {', '.join(choices)})"
+            )
+        return items
+
+    parse.__name__ = "comma-separated list"  # argparse names the type in its error messages
+    return parse
+
+
+def _scalar(hint: Any) -> Any:
+    """The one non-``None`` type of ``X | None``; ``str`` for any other union (e.g. ``int | str``)."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        arguments = [a for a in typing.get_args(hint) if a is not type(None)]
+        return arguments[0] if len(arguments) == 1 else str
+    return hint
+
+
+def _default_text(value: Any, spec: dict[str, Any]) -> str:
+    if spec["default_text"] is not None:
+        return spec["default_text"]
+    if isinstance(value, (list, tuple)):
+        return ("," if spec["comma_separated"] else " ").join(map(str, value)) or "none"
+    return str(value)
+
+
+def _argument(f: dataclasses.Field, hint: Any, value: Any) -> dict[str, Any]:
+    """The ``add_argument`` keywords of field ``f`` (annotation ``hint``) defaulting to ``value``."""
+    spec = f.metadata["flag"]
+    choices = spec["choices"]() if callable(spec["choices"]) else spec["choices"]
+    kwargs: dict[str, Any] = {"dest": f.name, "help": f"{spec['help']} (default {_default_text(value, spec)})"}
+    hint = _scalar(hint)
+    if typing.get_origin(hint) in (list, tuple, Sequence):
+        if spec["comma_separated"]:
+            kwargs["type"] = _comma_separated(None if choices is None else tuple(choices))
+        else:
+            (element, *_) = typing.get_args(hint) or (str,)
+            kwargs.update(nargs="+", type=element)
+        kwargs["default"] = list(value)
+        return kwargs
+    if hint is bool:
+        raise TypeError(f"field {f.name!r}: a bool flag is not supported; use a choice")
+    if spec["minimum"] is not None:
+        kwargs["type"] = _at_least(spec["minimum"])
+    elif hint in (int, float):
+        kwargs["type"] = hint
+    if choices is not None:
+        kwargs["choices"] = tuple(choices)
+    kwargs["default"] = value
+    if hint is str and value is not None and not isinstance(value, str):
+        kwargs["default"] = str(value)  # e.g. `devices`: an int default of an `int | str` field
+    return kwargs
+
+
+def add_config_arguments(
+    parser: Any,
+    defaults: Any,
+    *,
+    exclude: Collection[str] = (),
+    groups: dict[str, Any] | None = None,
+) -> list[argparse.Action]:
+    """Add a flag to ``parser`` for every flag field of dataclass instance ``defaults``.
+
+    Args:
+        parser: an ``argparse.ArgumentParser`` (or argument group).
+        defaults: a dataclass instance: its field values are the flags' defaults.
+        exclude: names of fields that get no flag.
+        groups: field name -> the group (e.g. a mutually exclusive one) its flag goes into, instead of ``parser``.
+
+    Returns:
+        The added actions, in field order.
+
+    Raises:
+        TypeError: a flag field is a bool (use a field with choices).
+
+    Example::
+
+        add_config_arguments(parser, default_experiment(), exclude=("seed",))
+    """
+    hints = typing.get_type_hints(type(defaults))
+    actions = []
+    for f in flag_fields(type(defaults), exclude):
+        target = (groups or {}).get(f.name, parser)
+        actions.append(target.add_argument(option(f.name), **_argument(f, hints[f.name], getattr(defaults, f.name))))
+    return actions
+
+
+def config_from_arguments(args: argparse.Namespace, defaults: Any, *, exclude: Collection[str] = (), **changes: Any):
+    """``defaults`` with every flag field set from parsed ``args`` (and ``changes`` over them).
+
+    Args:
+        args: what a parser of :func:`add_config_arguments` parsed.
+        defaults: the dataclass instance the parser was built with.
+        exclude: the fields :func:`add_config_arguments` excluded (kept from ``defaults``).
+        changes: further field values.
+
+    Returns:
+        A new instance of ``defaults``'s class (its ``__post_init__`` checks run again).
+
+    Example::
+
+        experiment = config_from_arguments(args, default_experiment(), exclude=("seed",))
+    """
+    values = {f.name: getattr(args, f.name) for f in flag_fields(type(defaults), exclude)}
+    return dataclasses.replace(defaults, **{**values, **changes})

@@ -1,0 +1,200 @@
+"""What ``lightning-vtr report`` runs: :class:`ReportConfig`, its default experiment and the report's names.
+
+Every field of :class:`ReportConfig` marked with :func:`~lightning_vtr.experiments.config.flag` is a flag of
+``lightning-vtr report`` (``validation_repeats`` is ``--validation-repeats``), as are those of its
+:class:`~lightning_vtr.experiments.config.ExperimentConfig` but ``seed``.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from lightning_vtr.evaluation.tables import BEST_IOU
+from lightning_vtr.experiments.config import ExperimentConfig, flag
+from lightning_vtr.experiments.strategies import STRATEGIES, VARIANTS
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
+
+__all__ = [
+    "ABLATIONS",
+    "BASELINES",
+    "MAIN_STRATEGIES",
+    "METRICS",
+    "PITCH_BANDS",
+    "REPORT_EXPERIMENT",
+    "STRATEGIES",
+    "STRATEGY_TITLES",
+    "ReportConfig",
+    "default_experiment",
+]
+
+#: Row titles of the tables, per strategy name of :data:`~lightning_vtr.experiments.strategies.VARIANTS`.
+STRATEGY_TITLES: dict[str, str] = {name: variant.title for name, variant in VARIANTS.items()}
+#: The report's default rows: no augmentation, angle-uniform random views, the callback's default and the
+#: paper's exact rule. Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is opt-in.
+MAIN_STRATEGIES: tuple[str, ...] = ("none", "random", "error_guided", "paper")
+#: The strategies every other one is compared with, seed by seed (when the report runs them).
+BASELINES: tuple[str, ...] = ("none", "random")
+#: The ablations of the error-guided method the report can run (none by default).
+ABLATIONS: tuple[str, ...] = ("k", "pool", "single_view")
+#: Pitch bands (degrees) of the view-distribution table and chart.
+PITCH_BANDS: tuple[int, ...] = (-90, -60, -30, 0, 30, 60, 90)
+#: The metrics of Table 1, ``results.csv`` and ``differences.csv``.
+METRICS: tuple[str, ...] = ("iou@0.4", BEST_IOU, "fscore")
+#: The paper's bin interval K (degrees); the ``"error_guided"`` run uses it.
+MAIN_K = 30
+#: The report's budget over :class:`~lightning_vtr.experiments.config.ExperimentConfig`'s defaults.
+REPORT_EXPERIMENT: dict[str, Any] = {
+    "out": "runs/report",
+    "pretrain_epochs": 30,
+    "finetune_epochs": 10,
+    "test_repeats": 4,
+}
+
+
+def default_experiment(**changes: Any) -> ExperimentConfig:
+    """The report's default experiment: :data:`REPORT_EXPERIMENT` over ExperimentConfig's defaults, then ``changes``.
+
+    Args:
+        changes: fields of :class:`~lightning_vtr.experiments.config.ExperimentConfig`.
+
+    Returns:
+        Tiny Pix2Vox++ on the embedded dataset, 30 pretraining and 10 fine-tuning epochs, batch size 8, every test
+        object on 4 view sets, written to ``runs/report``, with ``changes``.
+
+    Example::
+
+        run_report(ReportConfig(default_experiment(data="/data/shapenet_vtr", out="runs/shapenet"), seeds=[0, 1, 2]))
+    """
+    return ExperimentConfig(**{**REPORT_EXPERIMENT, **changes})
+
+
+@dataclass
+class ReportConfig:
+    """What the report trains and where it writes: one experiment, repeated per seed and per strategy.
+
+    Attributes:
+        experiment: model, data, budget and Trainer settings of every run
+            (:class:`~lightning_vtr.experiments.config.ExperimentConfig`; default :func:`default_experiment`).
+            Its ``out`` is the report's directory (runs go to ``out/seed_<s>/``, tables, CSV and chart to
+            ``out``) and its ``seed`` is replaced by each of ``seeds`` (:meth:`seed_config`). The report needs
+            ``pretrain_epochs`` and ``finetune_epochs`` of at least 1.
+        seeds: one full comparison per seed (pretraining included); several give means with 95 %
+            confidence intervals and paired differences.
+        strategies: the rows, names of :data:`~lightning_vtr.experiments.strategies.VARIANTS` (default
+            :data:`MAIN_STRATEGIES`).
+        ablations: which of :data:`ABLATIONS` to run (default none; they add the "error_guided" run, and
+            ``single_view`` the "none" run, when ``strategies`` lacks them).
+        k_values: bin intervals of the K ablation, degrees (each must divide 180).
+        selector_kwargs: per strategy name, arguments of its selector over the variant's (e.g.
+            ``{"viat": {"population": 4}}``).
+        callback_kwargs: arguments of every strategy's
+            :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` (e.g. ``{"progress_bar": False}``),
+            over the variants'.
+        synthesizer: the callbacks' synthesizer (``None``: mesh rendering).
+        command: the command line shown in the header (``None``: the equivalent ``lightning-vtr report``).
+        validation_repeats: also test every fine-tuned model on the *validation* objects, each on this many
+            fixed view sets (:func:`~lightning_vtr.experiments.training.validate_run`), and add the paired
+            differences there to ``report.md``: the place to choose among strategies, so the test split only
+            confirms. ``None`` (the default): off.
+        jobs: fits run at once, each in its own (spawned) process with ``torch.get_num_threads() // jobs``
+            torch threads (at least 1): every seed's pretraining first, then its runs as soon as it is done.
+            Their output goes to ``seed_<s>/logs/<run>.log``; the report prints a line per finished fit, then
+            builds the tables from the runs' caches as usual. Results equal a one-process report's at the same
+            thread count per fit (a fit's numbers depend on its thread count). Needs ``devices`` 1 and a
+            picklable ``synthesizer``. Default 1: everything in this process.
+
+    Raises:
+        ValueError: an unknown strategy or ablation, no or repeated seeds, a K that does not divide 180, a count
+            below 1, or ``jobs`` > 1 with several devices or an unpicklable synthesizer.
+        TypeError: ``experiment`` is not an ExperimentConfig, or a seed is not an int.
+
+    Example::
+
+        ReportConfig(default_experiment(out="runs/r"), seeds=[0, 1], strategies=["none", "random", "visible_nms"])
+    """
+
+    experiment: ExperimentConfig = field(default_factory=default_experiment)
+    seeds: Sequence[int] = field(
+        default=(0, 1, 2), metadata=flag("seeds; each pretrains its own model, several give confidence intervals")
+    )
+    strategies: Sequence[str] = field(
+        default=MAIN_STRATEGIES,
+        metadata=flag(
+            "comma-separated rows (--list-strategies lists them)", choices=lambda: tuple(VARIANTS), comma_separated=True
+        ),
+    )
+    ablations: Sequence[str] = field(
+        default=(),
+        metadata=flag(
+            f"comma-separated ablations of the error-guided method to run, among {','.join(ABLATIONS)}",
+            choices=ABLATIONS,
+            comma_separated=True,
+        ),
+    )
+    k_values: Sequence[int] = (15, 30, 60, 90)
+    selector_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    callback_kwargs: dict[str, Any] = field(default_factory=dict)
+    synthesizer: Any = None
+    command: str | None = None
+    validation_repeats: int | None = field(
+        default=None,
+        metadata=flag(
+            "also test every fine-tuned model on the validation objects, each on this many fixed view sets, and "
+            "print the paired differences there: choose strategies on those, not on the test split",
+            minimum=1,
+            default_text="off",
+        ),
+    )
+    jobs: int = field(
+        default=1,
+        metadata=flag(
+            "fits run at once, each in its own process with (torch threads // N) threads; output per fit in "
+            "OUT/seed_<s>/logs",
+            minimum=1,
+        ),
+    )
+
+    def __post_init__(self) -> None:
+        check_type("experiment", self.experiment, ExperimentConfig)
+        for name in ("pretrain_epochs", "finetune_epochs"):
+            check_int(f"experiment.{name}", getattr(self.experiment, name), minimum=1)
+        self.seeds = [check_int("seeds", s) for s in self.seeds]
+        self.strategies = list(self.strategies)
+        self.ablations = list(self.ablations)
+        self.k_values = [check_int("k_values", k, minimum=1) for k in self.k_values]
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"`seeds` must be a non-empty list of distinct seeds, got {self.seeds}")
+        if not self.strategies:
+            raise ValueError(f"`strategies` must name at least one of {list(VARIANTS)}, got []")
+        for strategy in self.strategies:
+            check_choice("strategies", strategy, VARIANTS)
+        for ablation in self.ablations:
+            check_choice("ablations", ablation, ABLATIONS)
+        bad = [k for k in self.k_values if 180 % k]
+        if bad:
+            raise ValueError(f"`k_values` must divide 180 (degrees), got {bad}")
+        for strategy in self.selector_kwargs:
+            check_choice("selector_kwargs", strategy, VARIANTS)
+        if self.validation_repeats is not None:
+            check_int("validation_repeats", self.validation_repeats, minimum=1)
+        if check_int("jobs", self.jobs, minimum=1) > 1:
+            if self.experiment.devices != 1:
+                raise ValueError(
+                    f"`jobs` > 1 runs one-device fits side by side; got jobs={self.jobs} with "
+                    f"experiment.devices={self.experiment.devices!r} (use jobs=1 for multi-device fits)"
+                )
+            try:
+                pickle.dumps(self.synthesizer)
+            except Exception as error:  # noqa: BLE001 - any pickling failure means the same thing here
+                raise ValueError(
+                    f"`jobs` > 1 sends the synthesizer to child processes, but {type(self.synthesizer).__name__} "
+                    f"cannot be pickled ({error}); use jobs=1"
+                ) from error
+
+    def seed_config(self, seed: int) -> ExperimentConfig:
+        """The :class:`~lightning_vtr.experiments.config.ExperimentConfig` of every run of ``seed``."""
+        return replace(self.experiment, seed=seed, out=str(Path(self.experiment.out) / f"seed_{seed}"))

@@ -1,0 +1,126 @@
+"""The report's data files: ``results.csv`` (one row per run x seed x view set), ``differences.csv`` (one row
+per baseline x run x view set x metric) and the chart ``report.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+from lightning_vtr.evaluation.tables import VIEW_SET_TITLES
+from lightning_vtr.experiments.report_config import BASELINES, METRICS, PITCH_BANDS
+from lightning_vtr.experiments.report_plan import ReportRun
+from lightning_vtr.experiments.report_tables import metric_value, paired_differences, run_values, seed_estimate
+from lightning_vtr.protocol import VIEW_SETS
+
+__all__ = ["write_chart", "write_differences_csv", "write_results_csv"]
+
+
+def write_results_csv(
+    path: Path, runs: list[ReportRun], payloads: dict[str, dict[int, dict]], seeds: list[int]
+) -> None:
+    """One row per run x seed x view set: ``run, strategy, seed, view_set``, the metrics (fractions, unrounded) and
+    the run's ``train_seconds``."""
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["run", "strategy", "seed", "view_set", *METRICS, "train_seconds"])
+        for run in runs:
+            for seed in seeds:
+                payload = payloads[run.name][seed]
+                for view_set in VIEW_SETS:
+                    values = payload["results"].get(view_set, {})
+                    writer.writerow(
+                        [run.name, run.strategy, seed, view_set]
+                        + [repr(float(_nan_if_none(metric_value(values, m)))) for m in METRICS]
+                        + [f"{payload['train_seconds']:.3f}"]
+                    )
+
+
+def _nan_if_none(value: float | None) -> float:
+    return math.nan if value is None else value
+
+
+def write_differences_csv(
+    path: Path, rows: dict[str, str], payloads: dict[str, dict[int, dict]], seeds: list[int]
+) -> None:
+    """One row per baseline x run x view set x metric: the paired difference as a fraction, its 95 % CI."""
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["baseline", "run", "view_set", "metric", "mean", "ci_low", "ci_high", "seeds", "agree"])
+        for baseline in (b for b in BASELINES if b in rows.values()):
+            for metric in METRICS:
+                by_title = paired_differences(rows, baseline, payloads, metric, seeds)
+                for title, per_set in by_title.items():
+                    for view_set, estimate in per_set.items():
+                        if estimate is None:
+                            continue
+                        writer.writerow(
+                            [baseline, rows[title], view_set, metric]
+                            + [repr(v) for v in (estimate.mean, estimate.low, estimate.high)]
+                            + [estimate.n, estimate.agree]
+                        )
+
+
+def write_chart(
+    path: Path,
+    rows: dict[str, str],
+    payloads: dict[str, dict[int, dict]],
+    seeds: list[int],
+    view_statistics: dict[str, dict[str, Any]],
+) -> None:
+    """mIoU per view set and row as grouped bars (error bars: 95 % CI over seeds) and, with ``view_statistics``,
+    the pitch histogram of each row's generated views."""
+    import matplotlib
+    import numpy as np
+    from matplotlib.figure import Figure  # no pyplot: no global figure manager, no backend switch
+
+    panels = 2 if view_statistics else 1
+    # the legends go under the panels, two entries a line: the figure grows with the rows
+    legend_lines = math.ceil(len(rows) / 2)
+    fig = Figure(figsize=(8 * panels, 4.2 + 0.2 * legend_lines), dpi=120, layout="constrained")
+    axes = fig.subplots(1, panels, squeeze=False)[0]
+    ax = axes[0]
+    width = 0.8 / max(1, len(rows))
+    x = np.arange(len(VIEW_SETS))
+    # one colour per strategy in both panels (the view panel has no row for None-VTR), distinct up to 20 rows
+    palette = [f"C{i}" for i in range(10)] if len(rows) <= 10 else [matplotlib.colormaps["tab20"](i) for i in range(20)]
+    colours = {title: palette[i % len(palette)] for i, title in enumerate(rows)}
+    for i, (title, run) in enumerate(rows.items()):
+        stats = [seed_estimate(list(run_values(payloads, run, v, "iou@0.4", seeds).values())) for v in VIEW_SETS]
+        means = [100 * e.mean if e else math.nan for e in stats]
+        errors = [100 * e.half_width if e and math.isfinite(e.half_width) else 0.0 for e in stats]
+        several = len(seeds) > 1
+        ax.bar(
+            x - 0.4 + (i + 0.5) * width,
+            means,
+            width,
+            yerr=errors if several else None,
+            capsize=3 if several else 0,
+            label=title,
+            color=colours[title],
+        )
+    ax.set_xticks(x, [VIEW_SET_TITLES[v] for v in VIEW_SETS])
+    ax.set_ylabel("mIoU@0.4 (%)")
+    spread = f" (mean, 95 % CI over {len(seeds)} seeds)" if len(seeds) > 1 else ""
+    ax.set_title(f"Reconstruction IoU per test view set{spread}")
+    ax.legend(ncol=2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08))
+    ax.grid(axis="y", alpha=0.3)
+    if view_statistics:
+        ax = axes[1]
+        centres = [(lo + hi) / 2 for lo, hi in zip(PITCH_BANDS, PITCH_BANDS[1:])]
+        band = PITCH_BANDS[1] - PITCH_BANDS[0]
+        width = 0.8 * band / len(view_statistics)
+        for i, (title, stats) in enumerate(view_statistics.items()):
+            offsets = [c - 0.4 * band + (i + 0.5) * width for c in centres]
+            label = f"{title} (antipodal {100 * stats['antipodal_share']:.0f} %, spread {stats['triplet_spread']:.0f}°)"
+            shares = [100 * share for share in stats["pitch_histogram"]]
+            ax.bar(offsets, shares, width, label=label, color=colours.get(title))
+        ax.set_xticks(list(PITCH_BANDS))
+        ax.set_xlabel("pitch of the generated training views (degrees)")
+        ax.set_ylabel("share of views (%)")
+        ax.set_title("Where each strategy's training views went")
+        ax.legend(ncol=2, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14))
+        ax.grid(axis="y", alpha=0.3)
+    fig.savefig(path)

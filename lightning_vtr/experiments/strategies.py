@@ -1,0 +1,229 @@
+"""The named view strategies of the harness, read from a YAML file of rows (``strategies.yaml``).
+
+Each row names a selector of :data:`lightning_vtr.selection.SELECTORS` (or none), the arguments of the selector
+and of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, a title and a description.
+:data:`VARIANTS` holds the rows of the file shipped with the package (:data:`STRATEGIES_FILE`), in the
+report's row order; :func:`load_variants` reads and validates any such file. Example row::
+
+    visible_fresh:
+      title: Visible, 20 % fresh
+      description: visible score, 20 % of the objects given views per selection, the latest selection kept
+      selector: error_guided
+      selector_kwargs: {score: visible, min_separation: 30.0}
+      callback_kwargs: {fraction: 0.2}
+      max_samples_fraction: 0.2   # generated samples kept: 20 % of the training objects' count
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from lightning_vtr.callback import ErrorGuidedViewAugmentation
+from lightning_vtr.errors import DataError
+from lightning_vtr.selection import SELECTORS
+from lightning_vtr.utils.validation import check_choice
+
+__all__ = [
+    "STRATEGIES",
+    "STRATEGIES_FILE",
+    "VARIANTS",
+    "StrategyFileError",
+    "StrategyVariant",
+    "load_variants",
+]
+
+#: The YAML file of named strategies shipped with the package.
+STRATEGIES_FILE = Path(__file__).with_name("strategies.yaml")
+#: The keys a row of a strategies file may hold.
+ROW_KEYS = ("title", "description", "selector", "selector_kwargs", "callback_kwargs", "max_samples_fraction")
+#: Callback arguments a row may not set: the report supplies them, or they depend on a dataset's size.
+_RESERVED_CALLBACK_KEYS = {
+    "selector": "the row's `selector` builds it",
+    "synthesizer": "the report supplies it",
+    "max_samples": "a count depends on the dataset's size; use `max_samples_fraction`",
+}
+
+
+class StrategyFileError(DataError):
+    """A strategies file is not valid YAML or a row is not a valid strategy (names the file and the row)."""
+
+
+@dataclass(frozen=True)
+class StrategyVariant:
+    """A named view strategy: a selector of :data:`lightning_vtr.selection.SELECTORS` and its settings.
+
+    Attributes:
+        selector: the selector's registry name; ``None`` for no augmentation (no callback).
+        selector_kwargs: arguments of the selector class.
+        callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`.
+        title: the row title in the report's tables.
+        description: one line saying what the strategy does.
+        max_samples_fraction: cap on the generated samples kept in the datamodule, as a share of the training
+            objects (the callback's ``max_samples`` is :meth:`max_samples` of the dataset's count); ``None``: no cap.
+
+    Raises:
+        ValueError: ``selector`` is not a registered selector, or ``max_samples_fraction`` is not in (0, 1].
+
+    Example::
+
+        StrategyVariant("random", {"mode": "area"}, title="Random (area-uniform)")
+    """
+
+    selector: str | None
+    selector_kwargs: Mapping[str, Any] = field(default_factory=dict)
+    callback_kwargs: Mapping[str, Any] = field(default_factory=dict)
+    title: str = ""
+    description: str = ""
+    max_samples_fraction: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.selector is not None:
+            check_choice("selector", self.selector, SELECTORS)
+        share = self.max_samples_fraction
+        if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 < share <= 1):
+            raise ValueError(f"`max_samples_fraction` must be a number in (0, 1], got {share!r}")
+        # read-only copies: a registry entry cannot be changed through a caller's dict
+        object.__setattr__(self, "selector_kwargs", MappingProxyType(dict(self.selector_kwargs)))
+        object.__setattr__(self, "callback_kwargs", MappingProxyType(dict(self.callback_kwargs)))
+
+    def max_samples(self, train_objects: int) -> int | None:
+        """The callback's ``max_samples`` on a dataset of ``train_objects`` training objects.
+
+        Args:
+            train_objects: the dataset's number of training objects.
+
+        Returns:
+            ``round(max_samples_fraction * train_objects)``, at least 1; ``None`` when the row sets no cap.
+
+        Example::
+
+            VARIANTS["random_fresh"].max_samples(170)  # 34
+        """
+        if self.max_samples_fraction is None:
+            return None
+        return max(1, int(round(self.max_samples_fraction * train_objects)))
+
+
+def _parameters(cls: type) -> set[str] | None:
+    """Names of the keyword arguments ``cls`` takes; ``None`` when it takes any (``**kwargs``)."""
+    parameters = inspect.signature(cls).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return None
+    return {p.name for p in parameters}
+
+
+def _unknown(where: str, keys: Any, known: set[str] | None) -> None:
+    unknown = sorted(k for k in keys if known is not None and k not in known)
+    if unknown:
+        raise StrategyFileError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} (expected {sorted(known)})")
+
+
+def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
+    """One row of a strategies file as a :class:`StrategyVariant`; every error names the file and the row."""
+    where = f"{path}, row {name!r}"
+    if not isinstance(name, str) or not name.isidentifier():
+        raise StrategyFileError(f"{where}: a row name must be a word of letters, digits and underscores")
+    if not isinstance(row, dict):
+        raise StrategyFileError(f"{where}: expected a mapping of {', '.join(ROW_KEYS)}, got {type(row).__name__}")
+    _unknown(where, row, set(ROW_KEYS))
+    missing = [k for k in ("title", "description", "selector") if k not in row]
+    if missing:
+        raise StrategyFileError(f"{where}: missing key(s) {', '.join(map(repr, missing))}")
+    for key in ("title", "description"):
+        if not isinstance(row[key], str) or not row[key].strip():
+            raise StrategyFileError(f"{where}: `{key}` must be a non-empty string, got {row[key]!r}")
+    selector = row["selector"]
+    if selector is not None and selector not in SELECTORS:
+        raise StrategyFileError(
+            f"{where}: unknown selector {selector!r} (expected null or one of {', '.join(map(repr, SELECTORS))})"
+        )
+    for key in ("selector_kwargs", "callback_kwargs"):
+        value = row.get(key, {})
+        if not isinstance(value, dict):
+            raise StrategyFileError(f"{where}: `{key}` must be a mapping, got {type(value).__name__}")
+        if value and selector is None:
+            raise StrategyFileError(f"{where}: `{key}` needs a selector (this row has none)")
+    if selector is not None:
+        _unknown(f"{where}, selector_kwargs", row.get("selector_kwargs", {}), _parameters(SELECTORS[selector]))
+        callback_kwargs = row.get("callback_kwargs", {})
+        for key, reason in _RESERVED_CALLBACK_KEYS.items():
+            if key in callback_kwargs:
+                raise StrategyFileError(f"{where}, callback_kwargs: {key!r} is not allowed ({reason})")
+        _unknown(f"{where}, callback_kwargs", callback_kwargs, _parameters(ErrorGuidedViewAugmentation))
+    elif row.get("max_samples_fraction") is not None:
+        raise StrategyFileError(f"{where}: `max_samples_fraction` needs a selector (this row has none)")
+    try:
+        return StrategyVariant(
+            selector,
+            row.get("selector_kwargs", {}),
+            row.get("callback_kwargs", {}),
+            title=row["title"].strip(),
+            description=" ".join(row["description"].split()),
+            max_samples_fraction=row.get("max_samples_fraction"),
+        )
+    except ValueError as error:
+        raise StrategyFileError(f"{where}: {error}") from error
+
+
+def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVariant]:
+    """Read and validate a YAML file of named strategies.
+
+    Args:
+        path: the file: a mapping of row names to rows (see the module docstring); default
+            :data:`STRATEGIES_FILE`.
+
+    Returns:
+        Name -> :class:`StrategyVariant`, in the file's order.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        StrategyFileError: the file is not YAML, is not a mapping of rows, repeats a row name or a title, or a row
+            has an unknown key, an unknown selector, an argument its selector or the callback does not take, or a
+            missing or invalid value; the message names the file and the row.
+
+    Example::
+
+        variants = load_variants("my_strategies.yaml")
+        make_strategy("visible_nms", config, variants=variants)
+    """
+    import yaml
+
+    path = Path(path)
+
+    class _Loader(yaml.SafeLoader):
+        """SafeLoader refusing a repeated row name (PyYAML would keep the last one silently)."""
+
+    def mapping(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict:
+        keys = [loader.construct_object(key) for key, _ in node.value]
+        repeated = sorted({k for k in keys if isinstance(k, str) and keys.count(k) > 1})
+        if repeated:
+            raise StrategyFileError(f"{path}: repeated key(s) {', '.join(map(repr, repeated))} ({node.start_mark})")
+        return loader.construct_mapping(node)
+
+    _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    try:
+        rows = yaml.load(path.read_text(encoding="utf-8"), Loader=_Loader)  # noqa: S506 - a SafeLoader
+    except yaml.YAMLError as error:
+        raise StrategyFileError(f"{path}: not valid YAML ({error})") from error
+    if not isinstance(rows, dict) or not rows:
+        raise StrategyFileError(f"{path}: expected a mapping of strategy names to rows, got {type(rows).__name__}")
+    variants = {name: _variant(path, name, row) for name, row in rows.items()}
+    titles = [v.title for v in variants.values()]
+    repeated = sorted({t for t in titles if titles.count(t) > 1})
+    if repeated:
+        raise StrategyFileError(f"{path}: repeated title(s) {', '.join(map(repr, repeated))}")
+    return variants
+
+
+#: Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
+#: The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults, so
+#: ``"error_guided"`` is whatever ``ErrorGuidedSelector()`` and ``ErrorGuidedViewAugmentation()`` default to.
+VARIANTS: dict[str, StrategyVariant] = load_variants()
+#: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
+#: :data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`.
+STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
