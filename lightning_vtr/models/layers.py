@@ -1,8 +1,8 @@
 """Layers shared by the reconstruction models, written for fast CPU training.
 
 oneDNN, PyTorch's CPU convolution backend, runs 3-D convolutions with few channels (1 to 20) through
-reference kernels when the activations are in PyTorch's default layout; their backward pass can take
-20 times longer than in the ``channels_last_3d`` layout. A convolution with one output channel and a
+reference kernels when the activations are in PyTorch's default layout, and only in the
+``channels_last_3d`` layout through its fast kernels. A convolution with one output channel and a
 ``1^3`` kernel has no fast kernel in either layout. The helpers here keep the models' math and
 parameters (checkpoints load unchanged) and avoid both slow paths.
 """

@@ -1,6 +1,6 @@
 """A DeiT-style (distilled) Vision Transformer and its transformer layers in plain torch, loadable from timm checkpoints.
 
-timm has no usable CPU build here, so LRGT's encoder is written out by hand. Module and
+LRGT's encoder, written in plain torch (timm is not a dependency). Module and
 parameter names match timm's ``deit_base_distilled_patch16_224`` (``patch_embed.proj``,
 ``cls_token``, ``dist_token``, ``pos_embed``, ``blocks.N.{norm1,attn.qkv,attn.proj,norm2,
 mlp.fc1,mlp.fc2}``, ``norm``), so :func:`load_timm_deit` can copy a timm state dict key for key.

@@ -8,7 +8,7 @@ rest of the package works without them (``pip install lightning-vtr[zero123]``).
 
 Checkpoint files (variants, shards, the noise schedule, the pose convention) are read by
 :mod:`~lightning_vtr.synthesis.zero123_checkpoint`; Hub ids are resolved by :mod:`~lightning_vtr.synthesis.zero123_hub`.
-Only tiny randomly initialised models are exercised by the tests; real checkpoints were not available here.
+The package's tests exercise tiny randomly initialised models only, not released checkpoints.
 """
 
 from __future__ import annotations

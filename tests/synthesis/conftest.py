@@ -18,7 +18,7 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-#: sizes from DESIGN section 4: a 64x64 model (UNet sample size 8, VAE factor 8)
+#: sizes of a 64x64 model (UNet sample size 8, VAE factor 8)
 TINY_CLIP_DIM = 32
 TINY_CROSS_DIM = 32
 

@@ -1,4 +1,4 @@
-"""A synthesizer that cannot serve the dataset is refused at setup, before any training (issue 17)."""
+"""A synthesizer that cannot serve the dataset is refused at setup, before any training."""
 
 from __future__ import annotations
 
@@ -115,7 +115,7 @@ def test_fit_refuses_render_synthesis_at_setup_before_any_training_step(renderin
 
 
 def test_default_synthesizer_is_refused_too(rendering_layout, tmp_path):
-    # The callback's default synthesizer renders meshes: the case issue 17 reports.
+    # The callback's default synthesizer renders meshes, which a dataset without meshes cannot serve.
     model = CountingModel()
     trainer = make_trainer(tmp_path, 2, [ErrorGuidedViewAugmentation(progress_bar=False)])
     with pytest.raises(ValueError, match="RenderSynthesizer renders each object's mesh"):
