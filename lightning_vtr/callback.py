@@ -27,7 +27,7 @@ from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities, check_type
 
-__all__ = ["ErrorGuidedViewAugmentation"]
+__all__ = ["RECORD_VERSION", "ErrorGuidedViewAugmentation"]
 
 _STATE_VERSION = 1
 #: The ``version`` of the per-selection records (``<log dir>/vtr_selection/*.json``).
@@ -123,9 +123,34 @@ class ErrorGuidedViewAugmentation(L.Callback):
     Trainer's autocast, as in validation; the error volumes and the selection use those predictions cast to
     float32, and the synthesized images are stored exactly as the synthesizer returns them (uint8).
 
-    Requirements: ``Trainer(reload_dataloaders_every_n_epochs=1)``; a datamodule with the
-    :class:`~lightning_vtr.data.VTRDataModule` API (``split_records``, ``eval_item``, ``object_views``,
-    ``add_samples``, ``transform``); a model satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
+    Requirements: ``Trainer(reload_dataloaders_every_n_epochs=1)``; a datamodule satisfying
+    :class:`~lightning_vtr.protocol.AugmentableDataModule` (``split_records``, ``record``, ``eval_item``,
+    ``object_views``, ``add_samples(samples, *, max_total)``, ``transform``, ``generated_samples``;
+    :class:`~lightning_vtr.data.VTRDataModule` has them all), which the callback only calls and never
+    assigns to; a model satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
+
+    Each object's voxel error (the ``mean_error`` logged and recorded, the order of ``generate_for="error"``)
+    is the fraction of voxels wrong with the prediction binarised at the selector's ``threshold``
+    (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD` for selectors that do not binarise).
+
+    Selection records: on global rank 0, every selection writes ``<log dir>/vtr_selection/start.json`` (the
+    selection before epoch 0) or ``epoch_<EEEE>.json`` (after epoch ``E``), a JSON object with the fields
+
+    * ``version`` (int): the record format, :data:`RECORD_VERSION` (1);
+    * ``epoch`` (int): the epoch whose end made the selection, ``-1`` before epoch 0;
+    * ``objects`` (list of str): ``"category/object_id"`` of each object given new views, in train order;
+    * ``selected`` (list of ``(n, 2)`` lists): the viewpoints (yaw, pitch in degrees, rounded to 0.001) the
+      selector chose for each of ``objects``;
+    * ``view_sets`` (list of ``(n, 2)`` lists): the viewpoints each object's new images were synthesized
+      at (drawn from the pool when there is one, else equal to ``selected``);
+    * ``mean_error`` (float): the mean voxel error of the searched objects (``0.0`` when none);
+    * ``searched`` (int): the number of objects searched (predicted and scored).
+
+    A reader should check ``version``; fields may be added without changing it, none removed or redefined.
+
+    Checkpoints: the callback's state (pool, selector state, history, last generated epoch) is saved under
+    :attr:`state_key`, which names the selector's class but not the seed; resuming with another ``seed``
+    restores it and warns. Checkpoints whose key also names the seed are read too.
 
     In DDP every rank works on its share of the objects (sharded by global rank in a fixed order); results
     are gathered and merged in that order, so every rank ends the epoch with an identical dataset, and the
@@ -158,7 +183,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
             (the paper's transferability argument); ``False`` draws among all, the object's own included.
         select_at_start: run the first selection and generation in ``on_train_start``, before epoch 0 trains,
             so every fine-tuning epoch sees selected views; ``False`` waits for the end of epoch 0.
-        max_samples: cap on generated samples kept in the datamodule (oldest dropped); ``None``: all.
+        max_samples: cap on generated samples the datamodule serves (the oldest are dropped), passed to every
+            ``add_samples(..., max_total=max_samples)``; ``None``: all. The one owner of the cap:
+            ``VTRDataModule`` has no cap of its own.
         batch_size: objects per prediction / synthesis call.
         source_view_set: which view set the objects' current views come from.
         seed: seeds every random choice the callback makes.
