@@ -33,12 +33,12 @@ import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 
+from lightning_vtr import export
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.dataset import VTRDataset, load_rgba
 from lightning_vtr.data.format import IMAGE_SUFFIXES
 from lightning_vtr.errors import DataError
-from lightning_vtr.export import export_prediction, prediction_facts
 from lightning_vtr.models.registry import checkpoint_hyperparameters
 from lightning_vtr.renderer import composite
 from lightning_vtr.selection.error_guided import ErrorGuidedSelector
@@ -427,8 +427,8 @@ def export_predictions(
     out = Path(out)
     for result in results:
         sheet = prediction_sheet(result, threshold, panel_size) if sheets else None
-        files = export_prediction(
+        files = export.export_prediction(
             out / result["name"], result["predicted"], threshold=threshold, mesh_format=mesh_format, sheet=sheet
         )
-        facts = prediction_facts(result["predicted"], result["target"], threshold)
+        facts = export.prediction_facts(result["predicted"], result["target"], threshold)
         yield {"name": result["name"], "files": files, "facts": facts}
