@@ -1,1 +1,1 @@
-"""Small shared helpers of the package: argument validation, atomic file writes, deprecation aliases."""
+"""Small shared helpers of the package: argument validation, atomic file writes, alpha compositing, image logging, progress feedback."""
