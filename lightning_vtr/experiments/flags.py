@@ -71,18 +71,21 @@ def _scalar(hint: Any) -> Any:
 
 
 def _default_text(value: Any, spec: dict[str, Any]) -> str:
+    """How the help names the default (``%`` escaped for argparse); ``%(default)s`` where argparse's own text
+    reads well, so that ``ArgumentDefaultsHelpFormatter`` adds no second one."""
     if spec["default_text"] is not None:
-        return spec["default_text"]
+        return spec["default_text"].replace("%", "%%")
     if isinstance(value, (list, tuple)):
-        return ("," if spec["comma_separated"] else " ").join(map(str, value)) or "none"
-    return str(value)
+        return (("," if spec["comma_separated"] else " ").join(map(str, value)) or "none").replace("%", "%%")
+    return "%(default)s"
 
 
 def _argument(f: dataclasses.Field, hint: Any, value: Any) -> dict[str, Any]:
     """The ``add_argument`` keywords of field ``f`` (annotation ``hint``) defaulting to ``value``."""
     spec = f.metadata["flag"]
     choices = spec["choices"]() if callable(spec["choices"]) else spec["choices"]
-    kwargs: dict[str, Any] = {"dest": f.name, "help": f"{spec['help']} (default {_default_text(value, spec)})"}
+    help_text = spec["help"].replace("%", "%%")
+    kwargs: dict[str, Any] = {"dest": f.name, "help": f"{help_text} (default {_default_text(value, spec)})"}
     hint = _scalar(hint)
     if typing.get_origin(hint) in (list, tuple, Sequence):
         if spec["comma_separated"]:
