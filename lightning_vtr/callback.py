@@ -63,8 +63,8 @@ def _reload_train_dataloader(trainer: L.Trainer) -> None:
     now". ``FitLoop.setup_data`` rebuilds the train loader when ``current_epoch -
     _last_train_dl_reload_epoch >= reload_dataloaders_every_n_epochs`` and then sets the attribute to the
     current epoch; marking the last reload as long ago makes the loop rebuild it before the epoch's first
-    batch, as ``reload_dataloaders_every_n_epochs=1`` does between epochs. ``tests/test_callback.py`` checks
-    that the attribute exists and has these semantics, so a Lightning release that changes it fails there.
+    batch, as ``reload_dataloaders_every_n_epochs=1`` does between epochs. ``tests/test_callback_contract.py``
+    checks that the attribute exists and has these semantics, so a Lightning release that changes it fails there.
     """
     loop = trainer.fit_loop
     if hasattr(loop, "_last_train_dl_reload_epoch"):
