@@ -2,7 +2,7 @@
 
 Random weights only (nothing is downloaded): timings depend on the architecture, not on the weights.
 
-* CPU, the tiny test model (64x64, DESIGN section 4 sizes) at 2 and 50 DDIM steps, guidance 3.0.
+* CPU, the tiny test model (64x64) at 2 and 50 DDIM steps, guidance 3.0.
 * GPU (if ``torch.cuda.is_available()``), a full-size model: SD 1.x UNet (block_out_channels
   (320, 640, 1280, 1280), cross_attention_dim 768, 8 input channels, 256x256), the SD VAE and a CLIP
   ViT-L/14 vision encoder (projection 768), 50 steps in fp16 with guidance 3.0.

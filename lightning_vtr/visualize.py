@@ -106,7 +106,7 @@ def _viewpoints(viewpoints: Any) -> np.ndarray:
 def voxel_mesh(occupancy: Any, colors: np.ndarray | None = None) -> trimesh.Trimesh:
     """The exposed faces of the occupied cells of a grid, as a mesh in world coordinates.
 
-    Cell ``(i, j, k)`` of an ``R^3`` grid is the cube ``[i / R - .5, (i + 1) / R - .5] x ...`` (DESIGN section 2),
+    Cell ``(i, j, k)`` of an ``R^3`` grid is the cube ``[i / R - .5, (i + 1) / R - .5] x ...``,
     so the mesh of a full grid is the cube ``[-0.5, 0.5]^3``. Faces between two occupied cells are left out;
     every face is wound counter-clockwise seen from outside (outward normals, for the renderer's lighting).
 

@@ -1,7 +1,7 @@
 """Functional voxel-reconstruction metrics: IoU at thresholds, best-threshold IoU and the surface F-score.
 
 These hold the math; :mod:`lightning_vtr.metrics` wraps them in torchmetrics ``Metric`` classes
-that accumulate per-object scores and sync across processes (DESIGN section 7).
+that accumulate per-object scores and sync across processes.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Pix2Vox++/A as a LightningModule: per-view encoder-decoder, context-aware merger, refiner.
 
-The ``paper`` preset follows DESIGN section 5 (ResNet-50 to ``layer2``, about 96.3 M parameters,
+The ``paper`` preset is the published model (ResNet-50 to ``layer2``, about 96.3 M parameters,
 224 px input); the ``tiny`` preset keeps the structure with a small convolutional backbone and
 narrow layers so it trains on a laptop CPU (64 px input). :meth:`Pix2VoxPlusPlus.from_official_checkpoint`
 reads the checkpoints the Pix2Vox++ authors released.
@@ -81,7 +81,7 @@ class Pix2VoxSpec:
         return self.image_size // (self.backbone_stride * 4)
 
 
-#: The named presets. ``paper``: DESIGN section 5, with Pix2Vox++'s initialisation and pretraining loss.
+#: The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
 #: ``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
 #: initialisation and ``BCE(refined)``, as in 0.1, so that its training runs and figures stay comparable.
 PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {

@@ -134,7 +134,7 @@ def test_cli_errors(tmp_path, capsys):
     assert "build_config.json" in capsys.readouterr().err
 
 
-# ------------------------------------------------------------------------------------------ Pix3D protocol (issue 17)
+# ------------------------------------------------------------------------------------------ Pix3D protocol
 
 
 def test_pix3d_protocol_flags_reach_the_builder(builds, tmp_path):

@@ -251,7 +251,7 @@ def test_two_workers_build_the_same_dataset(tmp_path, small):
     assert load_metadata(root)["objects"] == load_metadata(small[0])["objects"]
 
 
-# ------------------------------------------------------------------------------------------ Pix3D protocol (issue 17)
+# ------------------------------------------------------------------------------------------ Pix3D protocol
 
 PIX3D = dict(
     protocol="pix3d", categories=["chair"], objects_per_category=2, views_per_object=4, image_size=16, progress=False
