@@ -40,7 +40,7 @@ from types import ModuleType
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
 
-import torch  # noqa: E402
+import torch
 
 _HERE = Path(__file__).resolve().parent
 #: share of the training objects given new views per selection in the fit row; its 2 epochs select twice (before
@@ -261,7 +261,7 @@ def run_row(check: str, fn: Callable[[], Row], device: torch.device) -> Row:
     start = time.perf_counter()
     try:
         row = fn()
-    except Exception as err:  # noqa: BLE001 - one failing row must not stop the others
+    except Exception as err:
         traceback.print_exc(file=sys.stderr)
         row = Row(check, error=f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:300])
     finally:

@@ -21,13 +21,13 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
+import numpy as np
+import torch
+from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "synthesis"))
 
-from lightning_vtr.synthesis.zero123 import Zero123Synthesizer  # noqa: E402
+from lightning_vtr.synthesis.zero123 import Zero123Synthesizer
 
 
 def _inputs(n: int, size: int = 128) -> tuple[list[np.ndarray], torch.Tensor, torch.Tensor]:

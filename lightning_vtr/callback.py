@@ -315,9 +315,12 @@ class ErrorGuidedViewAugmentation(L.Callback):
                 fields = ast.literal_eval(key[len(prefix) :])
             except (ValueError, SyntaxError):
                 continue
-            if isinstance(fields, dict) and set(fields) == {"selector", "seed"}:
-                if fields["selector"] == type(self.selector).__name__:
-                    return key
+            if (
+                isinstance(fields, dict)
+                and set(fields) == {"selector", "seed"}
+                and fields["selector"] == type(self.selector).__name__
+            ):
+                return key
         return None
 
     def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
@@ -417,7 +420,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     # ------------------------------------------------------------------ the algorithm
     def _count(self, share: float, num_train: int) -> int:
-        return min(num_train, max(self.min_objects, int(round(share * num_train))))
+        return min(num_train, max(self.min_objects, round(share * num_train)))
 
     def _choose_objects(self, num_train: int, epoch: int) -> list[int]:
         """Indices of the objects searched at ``epoch``, in train order."""

@@ -17,18 +17,18 @@ import os
 # pyrender picks its GL platform when OpenGL is first imported; EGL works headless without X.
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import math  # noqa: E402
-import threading  # noqa: E402
-from typing import Any, Literal  # noqa: E402
+import math
+import threading
+from typing import Any, Literal
 
-import numpy as np  # noqa: E402
-import pyrender  # noqa: E402
-import torch  # noqa: E402
-import trimesh  # noqa: E402
+import numpy as np
+import pyrender
+import torch
+import trimesh
 
-from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, camera_pose, check_viewpoints  # noqa: E402
-from lightning_vtr.utils.compositing import alpha_composite  # noqa: E402
-from lightning_vtr.utils.validation import check_choice, check_float, check_int  # noqa: E402
+from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, camera_pose, check_viewpoints
+from lightning_vtr.utils.compositing import alpha_composite
+from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "DEFAULT_DISTANCE",

@@ -27,7 +27,7 @@ _one_thread = pytest.fixture(autouse=True)(one_thread)
 
 # ------------------------------------------------------------------------------------ dataset format version
 @pytest.mark.parametrize(
-    "version, advice",
+    ("version", "advice"),
     [
         (2, "a newer lightning_vtr wrote it: upgrade lightning_vtr to read it"),
         (0, "rebuild it with `lightning-vtr build-dataset`"),
@@ -56,7 +56,7 @@ def _save_checkpoint(model: L.LightningModule, path) -> str:
 
 
 @pytest.mark.parametrize(
-    "saved_cls, loading_cls, where",
+    ("saved_cls", "loading_cls", "where"),
     [
         (LRGT, Pix2VoxPlusPlus, "lightning_vtr.models.lrgt.LRGT"),
         (Pix2VoxPlusPlus, LRGT, "lightning_vtr.models.pix2vox.Pix2VoxPlusPlus"),

@@ -29,7 +29,7 @@ from lightning_vtr.synthesis.render import RenderSynthesizer
 
 
 @pytest.mark.parametrize(
-    "kwargs, match",
+    ("kwargs", "match"),
     [
         ({"fraction": 0.0}, "fraction"),
         ({"fraction": 1.5}, "fraction"),
@@ -44,7 +44,7 @@ def test_init_validates_arguments(kwargs, match):
 
 
 @pytest.mark.parametrize(
-    "kwargs, message",
+    ("kwargs", "message"),
     [
         ({"selector": 3}, "`selector` must be a lightning_vtr ViewSelector or a registry name, got int 3"),
         ({"synthesizer": "render"}, "`synthesizer` must be a lightning_vtr Synthesizer, got str 'render'"),
@@ -275,7 +275,7 @@ def test_source_images_are_decoded_only_for_synthesizers_that_read_them(tiny_dat
     assert torch.allclose(diffused.source_viewpoints[:, 1], torch.full((8,), 30.0))
 
 
-@pytest.mark.parametrize("select_at_start, expected", [(True, [25, 29, 33]), (False, [21, 25, 29])])
+@pytest.mark.parametrize(("select_at_start", "expected"), [(True, [25, 29, 33]), (False, [21, 25, 29])])
 def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, request, select_at_start, expected):
     # 21 training objects, 4 new samples per selection; with select_at_start, the selection made from the model
     # the fit starts with is in epoch 0's loader (Lightning built that loader before on_train_start).
@@ -360,7 +360,7 @@ def test_vtr_values_go_through_pl_module_log_and_images_to_the_logger(tiny_datas
     # 4 samples before epoch 0 and 4 after it: logged at epoch level through pl_module.log
     assert trainer.callback_metrics["vtr/samples_total"].item() == 8.0
     assert trainer.callback_metrics["vtr/samples_generated"].item() == 4.0
-    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").read_text().splitlines()))
     totals = [float(r["vtr/samples_total"]) for r in rows if r.get("vtr/samples_total")]
     assert totals == [8.0]  # epoch 0's row (epoch 1, the last, generates nothing)
     assert best.best_model_score.item() == 8.0

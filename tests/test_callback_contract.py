@@ -153,7 +153,7 @@ def test_a_checkpoint_keyed_with_the_seed_still_loads(tiny_dataset, one_epoch, t
 
 
 def test_selection_records_have_the_documented_fields(one_epoch):
-    run_dir, dm, _ = one_epoch
+    run_dir, _dm, _ = one_epoch
     record = json.loads((Path(run_dir) / "vtr_selection" / "start.json").read_text())
     assert RECORD_VERSION == 1
     assert record["version"] == RECORD_VERSION

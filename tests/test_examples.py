@@ -22,7 +22,7 @@ def _load(name: str):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, title", [("pix2vox_vtr", "Pix2Vox++"), ("lrgt_vtr", "LRGT")])
+@pytest.mark.parametrize(("name", "title"), [("pix2vox_vtr", "Pix2Vox++"), ("lrgt_vtr", "LRGT")])
 def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, name, title):
     out = tmp_path / name
     argv = [

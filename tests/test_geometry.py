@@ -134,7 +134,7 @@ def test_default_half_extent_is_the_bounding_radius_everywhere():
     from lightning_vtr.selection import differentiable_projection
 
     # the circumsphere of [-0.5, 0.5]^3: a corner is sqrt(3) / 2 from the centre
-    assert g.DEFAULT_HALF_EXTENT == pytest.approx(float(torch.tensor([0.5, 0.5, 0.5]).norm()))
+    assert pytest.approx(float(torch.tensor([0.5, 0.5, 0.5]).norm())) == g.DEFAULT_HALF_EXTENT
     assert renderer.DEFAULT_HALF_EXTENT is g.DEFAULT_HALF_EXTENT
     assert differentiable_projection.DEFAULT_HALF_EXTENT is g.DEFAULT_HALF_EXTENT
 

@@ -89,7 +89,7 @@ def test_a_kill_while_writing_samples_loses_nothing(tiny_dataset, pix2vox_run_4_
     report.mkdir()
     (tmp_path / "child.py").write_text(_CHILD)
     tests_dir = str(Path(__file__).parent)
-    log = open(tmp_path / "child.log", "w")
+    log = open(tmp_path / "child.log", "w")  # noqa: SIM115 (the child writes it until killed)
     child = subprocess.Popen(
         [sys.executable, str(tmp_path / "child.py"), str(tiny_dataset), str(run), str(report), tests_dir],
         stdout=log,

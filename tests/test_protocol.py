@@ -80,7 +80,7 @@ class _DuckDataModule:
     """Has every member of AugmentableDataModule without inheriting anything."""
 
     transform = staticmethod(lambda images: images)
-    generated_samples: list = []
+    generated_samples: list = []  # noqa: RUF012 (a stand-in datamodule's attribute)
 
     def split_records(self, split):
         return []

@@ -31,7 +31,7 @@ def comma_separated(choices: Collection[str] | None = None) -> Callable[[str], l
         unknown = [item for item in items if choices is not None and item not in choices]
         if unknown:
             raise argparse.ArgumentTypeError(
-                f"invalid choice(s) {', '.join(map(repr, unknown))} (choose from {', '.join(choices)})"
+                f"invalid choice(s) {', '.join(map(repr, unknown))} (choose from {', '.join(choices or ())})"
             )
         return items
 

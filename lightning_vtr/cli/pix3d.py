@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
             fscore_points=args.fscore_points,
         )
     # 4. the table
-    what = f"Pix3D ({str(args.root)}), {len(records)} photographs, one view each"
+    what = f"Pix3D ({args.root!s}), {len(records)} photographs, one view each"
     table = write_evaluation(
         args.out, results, title="Pix3D", notes=evaluation_notes(results, what), per_category=args.per_category
     )
@@ -223,7 +223,7 @@ def run_folder(args: argparse.Namespace) -> int:
             fscore_points=args.fscore_points,
         )
     what = "; ".join(
-        f"{str(args.images)} ({s}): {n} objects, {v} view(s) each ({args.view_choice})" for n, v, s in sorted(sizes)
+        f"{args.images!s} ({s}): {n} objects, {v} view(s) each ({args.view_choice})" for n, v, s in sorted(sizes)
     )
     table = write_evaluation(
         args.out, results, title=str(args.images), notes=evaluation_notes(results, what), per_category=args.per_category

@@ -34,7 +34,7 @@ from lightning_vtr.data.format import UP_AXES
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_choice, check_float
 
-__all__ = ["read_binvox", "voxels_to_z_up", "voxels_to_y_up", "write_binvox"]
+__all__ = ["read_binvox", "voxels_to_y_up", "voxels_to_z_up", "write_binvox"]
 
 _MAX_HEADER_LINES = 16
 

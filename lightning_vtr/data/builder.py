@@ -40,6 +40,7 @@ different ones is refused, so one dataset never mixes image sizes or view sets.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -74,13 +75,13 @@ from lightning_vtr.utils.io import atomic_write, remove_stale_temporaries
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
-    "BuildReport",
     "EMBEDDED_DEFAULTS",
     "PIX3D_PITCH_RANGE",
     "PIX3D_VIEWS_PER_OBJECT",
     "PIX3D_VIEW_SET",
     "PROTOCOLS",
     "SOURCE_LAYOUTS",
+    "BuildReport",
     "build_dataset",
     "embedded_dataset_dir",
     "ensure_embedded_dataset",
@@ -351,12 +352,10 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
             },
         )
         return task.key, None
-    except Exception as err:  # noqa: BLE001 - one bad mesh must not stop a 40k-object build
+    except Exception as err:
         message = f"{type(err).__name__}: {err}"
-        try:
+        with contextlib.suppress(OSError):  # the report still carries the message
             atomic_write_json(directory / "error.json", {"key": task.key, "source": task.path, "error": message})
-        except OSError:
-            pass  # the report still carries the message
         return task.key, message
 
 
@@ -366,8 +365,8 @@ def _splits(keys: list[tuple[str, str]], ratios: Sequence[float], seed: int) -> 
     for category in sorted({c for c, _ in keys}):
         ids = sorted(o for c, o in keys if c == category)
         order = np.random.default_rng([seed, _stable_int(category)]).permutation(len(ids))
-        n_train = int(round(ratios[0] * len(ids)))
-        n_val = int(round(ratios[1] * len(ids)))
+        n_train = round(ratios[0] * len(ids))
+        n_val = round(ratios[1] * len(ids))
         shuffled = [ids[i] for i in order]
         out[category] = {
             "train": sorted(shuffled[:n_train]),

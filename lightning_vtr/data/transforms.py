@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -300,7 +300,7 @@ class BackgroundFolder:
                 if h < height or w < width:
                     scale = max(height / h, width / w)
                     h, w = max(height, math.ceil(h * scale)), max(width, math.ceil(w * scale))
-                    img = img.convert("RGB").resize((w, h), Image.BILINEAR)
+                    img = img.convert("RGB").resize((w, h), Image.Resampling.BILINEAR)
                 top = min(int(position[0] * (h - height + 1)), h - height)
                 left = min(int(position[1] * (w - width + 1)), w - width)
                 # Crop before converting: only the window is converted and copied.
@@ -414,7 +414,7 @@ IMAGE_RECIPES: Mapping[str, ImageRecipe] = MappingProxyType(
         "plain": ImageRecipe(),
         "pix2vox": ImageRecipe(
             background=(240, 240, 240),
-            background_range=(225, 255),
+            background_range=((225, 255),) * 3,
             crop=SHAPENET_RENDERING_CROP,
             brightness=0.4,
             contrast=0.4,
@@ -427,7 +427,7 @@ IMAGE_RECIPES: Mapping[str, ImageRecipe] = MappingProxyType(
         ),
         "lrgt": ImageRecipe(
             background=(240, 240, 240),
-            background_range=(225, 255),
+            background_range=((225, 255),) * 3,
             crop=SHAPENET_RENDERING_CROP,
             normalize="pm1",
         ),
@@ -490,9 +490,10 @@ class ImageTransform:
         background_folder: str | os.PathLike | None = None,
     ) -> None:
         self.image_size = check_int("image_size", image_size, minimum=1)
+        # ImageRecipe.__post_init__ checks and normalises the looser argument types given here
         self.recipe = ImageRecipe(
-            background=background,
-            background_range=background_range,
+            background=cast("tuple[int, int, int]", background),
+            background_range=cast("tuple[tuple[int, int], ...] | None", background_range),
             crop=crop,
             brightness=brightness,
             contrast=contrast,
@@ -502,7 +503,7 @@ class ImageTransform:
             permute_rgb=permute_rgb,
             clamp=clamp,
             normalize=normalize,
-            background_folder=background_folder,
+            background_folder=cast("str | None", background_folder),
         )
         folder = self.recipe.background_folder
         #: the scanned folder of training backgrounds, or None
@@ -565,7 +566,8 @@ class ImageTransform:
                 f"parameter of a sample is drawn from it; got None for {self!r}"
             )
         r = self.recipe
-        draw = self.draw(key, batch.shape[0]) if self.is_random else None
+        draw = self.draw(key, batch.shape[0]) if self.is_random and key is not None else None
+        background: tuple[int, ...]
         if draw is not None:
             background = draw.background
         else:  # a one-colour range is a fixed training background

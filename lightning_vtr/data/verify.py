@@ -278,7 +278,7 @@ def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
             for split, ids in parts.items() if isinstance(parts, Mapping) else ():
                 for oid in ids if isinstance(ids, list) else ():
                     listed[f"{category}/{oid}"] = split
-    if not isinstance(splits, Mapping) or not listed and meta["objects"]:
+    if not isinstance(splits, Mapping) or (not listed and meta["objects"]):
         return [
             DatasetProblem(path, "unreadable", "splits.json must map categories to {split: [object ids]}", None, None)
         ]

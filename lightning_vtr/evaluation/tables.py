@@ -89,10 +89,10 @@ def format_cell(value: float | None, std: float | None = None, *, digits: int = 
         >>> format_cell(0.6), format_cell(0.6, 0.1414), format_cell(float("nan"), 0.1)
         ('60.00', '60.00 ± 14.14', '-')
     """
-    if _missing(value):
+    if value is None or _missing(value):
         return "-"
     text = f"{100 * value:.{digits}f}"
-    return text if _missing(std) else f"{text} ± {100 * std:.{digits}f}"
+    return text if std is None or _missing(std) else f"{text} ± {100 * std:.{digits}f}"
 
 
 def _missing(value: float | None) -> bool:

@@ -189,7 +189,7 @@ class ReportConfig:
                 )
             try:
                 pickle.dumps(self.synthesizer)
-            except Exception as error:  # noqa: BLE001 - any pickling failure means the same thing here
+            except Exception as error:
                 raise ValueError(
                     f"`jobs` > 1 sends the synthesizer to child processes, but {type(self.synthesizer).__name__} "
                     f"cannot be pickled ({error}); use jobs=1"

@@ -5,6 +5,7 @@ per baseline x run x view set x metric) and the chart ``report.png``.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from pathlib import Path
 from typing import Any
@@ -109,7 +110,7 @@ def write_chart(
     ax.grid(axis="y", alpha=0.3)
     if view_statistics:
         ax = axes[1]
-        centres = [(lo + hi) / 2 for lo, hi in zip(PITCH_BANDS, PITCH_BANDS[1:])]
+        centres = [(lo + hi) / 2 for lo, hi in itertools.pairwise(PITCH_BANDS)]
         band = PITCH_BANDS[1] - PITCH_BANDS[0]
         width = 0.8 * band / len(view_statistics)
         for i, (title, stats) in enumerate(view_statistics.items()):

@@ -6,6 +6,7 @@ Every function reads ``payloads``, ``{run: {seed: results.json payload}}``, and 
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -127,7 +128,7 @@ def pooled_views(views: dict[int, Any], seeds: list[int]) -> Any:
 def view_table(statistics: dict[str, dict[str, Any]]) -> str:
     bands = [
         f"[{lo}, {hi}{']' if i == len(PITCH_BANDS) - 2 else ')'}"
-        for i, (lo, hi) in enumerate(zip(PITCH_BANDS, PITCH_BANDS[1:]))
+        for i, (lo, hi) in enumerate(itertools.pairwise(PITCH_BANDS))
     ]
     header = ["Method", "View sets", *(f"Pitch {b}" for b in bands), "Antipodal pairs", "Mean spread (°)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

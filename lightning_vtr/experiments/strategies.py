@@ -106,7 +106,7 @@ class StrategyVariant:
         """
         if self.max_samples_fraction is None:
             return None
-        return max(1, int(round(self.max_samples_fraction * train_objects)))
+        return max(1, round(self.max_samples_fraction * train_objects))
 
 
 def _parameters(cls: type) -> set[str] | None:
@@ -207,7 +207,7 @@ def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVaria
 
     _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
     try:
-        rows = yaml.load(path.read_text(encoding="utf-8"), Loader=_Loader)  # noqa: S506 - a SafeLoader
+        rows = yaml.load(path.read_text(encoding="utf-8"), Loader=_Loader)
     except yaml.YAMLError as error:
         raise StrategyFileError(f"{path}: not valid YAML ({error})") from error
     if not isinstance(rows, dict) or not rows:

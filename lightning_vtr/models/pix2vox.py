@@ -9,6 +9,7 @@ reads the checkpoints the Pix2Vox++ authors released.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import pickle
 import warnings
@@ -155,7 +156,7 @@ class _Decoder(nn.Module):
     def __init__(self, in_channels: int, channels: Sequence[int]) -> None:
         super().__init__()
         widths = [in_channels, *channels]
-        self.layers = nn.Sequential(*[_tconv3d(a, b) for a, b in zip(widths[:-1], widths[1:])])
+        self.layers = nn.Sequential(*[_tconv3d(a, b) for a, b in itertools.pairwise(widths)])
         self.to_volume = VolumeHead(channels[-1])
 
     def forward(self, x: Tensor) -> Tensor:
@@ -440,7 +441,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         if freeze_backbone is None:
             warnings.warn(
                 "`freeze_backbone=None` (freeze exactly when `backbone_weights` is given) is deprecated and will be "
-                "removed in 0.3; Pix2Vox++ trains its backbone. Pass freeze_backbone=True to keep it fixed.",
+                "removed in 0.4; Pix2Vox++ trains its backbone. Pass freeze_backbone=True to keep it fixed.",
                 DeprecationWarning,
                 stacklevel=2,
             )

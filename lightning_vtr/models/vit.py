@@ -91,7 +91,7 @@ class Attention(nn.Module):
         n, h, t, d = x.shape
         return x.transpose(1, 2).reshape(n, t, h * d)
 
-    def forward(self, x: Tensor, num_views: int = 1) -> Tensor:  # noqa: ARG002 - per-view attention
+    def forward(self, x: Tensor, num_views: int = 1) -> Tensor:
         q, k, v = self.split_heads(x)
         return self.proj(self.merge_heads(F.scaled_dot_product_attention(q, k, v)))
 

@@ -97,8 +97,7 @@ def fetch_weights(
     what = f"{kind} weights" if kind else "weights"
     source = os.fspath(source)
     if source == "imagenet":
-        check_choice("kind", kind, IMAGENET_WEIGHTS)
-        source = IMAGENET_WEIGHTS[kind]
+        source = IMAGENET_WEIGHTS[check_choice("kind", kind, IMAGENET_WEIGHTS)]
     if not _is_url(source):
         path = Path(source).expanduser()
         if not path.is_file():

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -143,5 +144,5 @@ class ViewSelector(abc.ABC):
         """Learned state to checkpoint (empty for stateless selectors)."""
         return {}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: dict[str, Any]) -> None:  # noqa: B027 (optional: stateless selectors keep it)
         """Restore what :meth:`state_dict` returned."""

@@ -55,8 +55,8 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
     "check_volume_pair",
-    "clear_projection_cache",
     "check_volumes",
+    "clear_projection_cache",
     "error_projection",
     "error_volume",
     "nearest_bins",

@@ -50,7 +50,7 @@ def viewpoint_key(viewpoint: Tensor | np.ndarray | tuple[float, float]) -> str:
     vp = check_viewpoints(torch.as_tensor(np.asarray(viewpoint, dtype=np.float64)), "viewpoint")
     if vp.shape != (2,):
         raise ValueError(f"`viewpoint` must be one (yaw, pitch) pair in degrees, got shape {tuple(vp.shape)}")
-    yaw, pitch = (int(round(float(a) * _MILLIDEGREES)) for a in vp)
+    yaw, pitch = (round(float(a) * _MILLIDEGREES) for a in vp)
     # integer arithmetic so 180.0 and -180.0 (and -0.0 and 0.0) land on the same file
     yaw = (yaw + 180 * _MILLIDEGREES) % (360 * _MILLIDEGREES) - 180 * _MILLIDEGREES
     pitch = max(-90 * _MILLIDEGREES, min(90 * _MILLIDEGREES, pitch))
@@ -208,7 +208,7 @@ class CachedSynthesizer(Synthesizer):
                     found[r][t] = np.asarray(image)
 
         out = []
-        for req, hits in zip(requests, found):
+        for hits in found:
             if hits:
                 out.append(np.stack(hits, axis=0))
             else:

@@ -315,7 +315,7 @@ class Zero123Synthesizer(Synthesizer):
                 loaded[sub] = model_cls.from_pretrained(
                     folder, subfolder=sub, variant=weights.variant, local_files_only=True
                 )
-            except Exception as err:  # noqa: BLE001 - reported with the folder it came from
+            except Exception as err:
                 problems.append(f"{sub}/: expected a {model_cls.__name__}; loading failed: {type(err).__name__}: {err}")
                 continue
             used += [f"{sub}/config.json", *(f"{sub}/{name}" for name in weights.files)]
@@ -349,7 +349,7 @@ class Zero123Synthesizer(Synthesizer):
                 if not mismatches:
                     kwargs["scheduler"] = DDIMScheduler.from_pretrained(folder, subfolder="scheduler")
                     used.append(f"scheduler/{config_file.name}")
-            except Exception as err:  # noqa: BLE001
+            except Exception as err:
                 problems.append(f"scheduler/: expected a readable {config_file.name}; loading failed: {err}")
             else:
                 if mismatches:

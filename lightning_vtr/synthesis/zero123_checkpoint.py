@@ -183,13 +183,13 @@ def select_weight_files(names: Iterable[str], kind: str, variant: str | None, wh
     elif variant is not None:
         raise Zero123CheckpointError(
             f"{where}: expected weights of variant {variant!r} (or plain ones), found only the variants "
-            f"{sorted(variants)}: {found}"
+            f"{sorted(variants, key=str)}: {found}"
         )
     elif len(variants) == 1:
         (chosen,) = variants
     else:
         raise Zero123CheckpointError(
-            f"{where}: holds several weight variants {sorted(variants)} and no plain files; pass `variant=` "
+            f"{where}: holds several weight variants {sorted(variants, key=str)} and no plain files; pass `variant=` "
             f"to choose one ({found})"
         )
     for stem, ext in _WEIGHT_STEMS[kind]:

@@ -221,7 +221,7 @@ def _hub_source(
                 f"`path` {repo_id!r} is neither a local directory nor a Hub repository (not found, or private: "
                 "log in with `hf auth login` or pass `token=`)"
             ) from err
-        except Exception as err:  # noqa: BLE001 - no connection: the cache may still have it
+        except Exception as err:
             offline, reason = True, f"the Hub could not be reached ({type(err).__name__}: {err})"
         else:
             where = f"{repo_id!r} (revision {revision or 'main'!r})"

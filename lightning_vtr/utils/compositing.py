@@ -56,7 +56,7 @@ def alpha_composite(rgba: ArrayOrTensor, background: Any = None, *, channels_fir
     layout = "(..., 4, H, W)" if channels_first else "(..., H, W, 4)"
     if rgba.ndim < 3 or rgba.shape[axis] != 4:
         raise ValueError(f"`rgba` must be {layout}, got shape {tuple(rgba.shape)}")
-    if is_tensor:
+    if isinstance(rgba, torch.Tensor):
         integer, floating = rgba.dtype == torch.uint8, rgba.is_floating_point()
     else:
         integer, floating = rgba.dtype == np.uint8, np.issubdtype(rgba.dtype, np.floating)
@@ -64,10 +64,7 @@ def alpha_composite(rgba: ArrayOrTensor, background: Any = None, *, channels_fir
         raise TypeError(f"`rgba` must hold uint8 or floating-point values, got {rgba.dtype}")
 
     # 2. split the channels, in the range of the blend
-    if integer:
-        x = rgba.float() if is_tensor else rgba.astype(np.float32)
-    else:
-        x = rgba
+    x = (rgba.float() if isinstance(rgba, torch.Tensor) else rgba.astype(np.float32)) if integer else rgba
     if channels_first:
         rgb, alpha = x[..., :3, :, :], x[..., 3:, :, :]
     else:
@@ -82,7 +79,7 @@ def alpha_composite(rgba: ArrayOrTensor, background: Any = None, *, channels_fir
     out = rgb * alpha + bg * (1.0 - alpha)
     if not integer:
         return out
-    return torch.round(out).to(torch.uint8) if is_tensor else np.rint(out).astype(np.uint8)
+    return torch.round(out).to(torch.uint8) if isinstance(out, torch.Tensor) else np.rint(out).astype(np.uint8)
 
 
 def _as_background(background: Any, rgb: ArrayOrTensor, axis: int, channels_first: bool) -> ArrayOrTensor:

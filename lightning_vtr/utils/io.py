@@ -42,7 +42,7 @@ def atomic_open(path: str | Path, mode: str = "wb", *, fsync: bool = False) -> I
     try:
         # mkstemp creates 0600; give the file the permissions a plain open() would (a shared cache stays readable)
         os.chmod(tmp, 0o666 & ~_umask())
-        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as f:
+        with os.fdopen(fd, mode, encoding=None if "b" in mode else "utf-8") as f:
             yield f
             if fsync:
                 f.flush()

@@ -189,7 +189,7 @@ def test_a_user_error_is_one_line_and_status_2(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "words, lightning",
+    ("words", "lightning"),
     [
         (["predict", "--ckpt", "a.ckpt", "--images", "d", "--out", "o"], False),
         (["predict", "--help"], False),

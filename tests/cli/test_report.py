@@ -104,7 +104,7 @@ def test_cli_defaults_are_the_report_defaults(captured):
 
 
 @pytest.mark.parametrize(
-    "argv, message",
+    ("argv", "message"),
     [
         (["--strategies", "none,ours"], "invalid choice(s) 'ours'"),
         (["--ablations", "k,dropout"], "invalid choice(s) 'dropout'"),

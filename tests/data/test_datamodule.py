@@ -190,9 +190,9 @@ def test_bad_arguments_are_named(tiny_dataset):
     dm = _dm(tiny_dataset)
     with pytest.raises(KeyError, match="unknown object"):
         dm.add_samples([GeneratedSample("chair", "nope", np.zeros((3, 8, 8, 4), np.uint8), np.zeros((3, 2)))])
+    s = _sample(dm)
+    s.images = s.images.astype(np.float32)
     with pytest.raises(ValueError, match="uint8"):
-        s = _sample(dm)
-        s.images = s.images.astype(np.float32)
         dm.add_samples([s])
 
 

@@ -248,9 +248,7 @@ def test_package_frame_puts_the_front_at_plus_x_and_up_at_plus_z(pix3d_root):
     # Legs (x_m, z_m) -> (X, Y) = (-z_m, -x_m) cells: (-.31, -.06) -> (15, 26), (-.31, .26) -> (4, 26),
     # (.31, .26) -> (4, 5), (.09, -.41) -> (27, 12), (.31, -.41) -> (27, 5).
     labels, count = ndimage.label(voxels[:, :, 2])
-    centres = {
-        tuple(int(round(c)) for c in ndimage.center_of_mass(voxels[:, :, 2], labels, i)) for i in range(1, count + 1)
-    }
+    centres = {tuple(round(c) for c in ndimage.center_of_mass(voxels[:, :, 2], labels, i)) for i in range(1, count + 1)}
     assert centres == {(15, 26), (4, 26), (4, 5), (27, 12), (27, 5)}
     chaise = voxels[19:, :, 14:18]
     assert chaise.any() and not chaise[:, 16:].any(), "the chaise (model +x, forward) is at +X and -Y"

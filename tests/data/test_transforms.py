@@ -53,7 +53,7 @@ def _original_transform(rgba, image_size, background, normalize):
 def _rgba(rgb, alpha=255):
     """A ``(1, H, W, 4)`` uint8 image of ``(H, W, 3)`` colours with one alpha everywhere."""
     rgb = np.asarray(rgb, np.uint8)
-    return np.concatenate([rgb, np.full(rgb.shape[:-1] + (1,), alpha, np.uint8)], axis=-1)[None]
+    return np.concatenate([rgb, np.full((*rgb.shape[:-1], 1), alpha, np.uint8)], axis=-1)[None]
 
 
 # ---------------------------------------------------------------------------------------------- the plain path
@@ -222,7 +222,7 @@ def test_lrgt_training_draws_one_background_per_sample_in_225_255():
         colour = (out[0, :, 0, 0] + 1) / 2 * 255
         assert torch.allclose(out, out[0, :, 0, 0].view(1, 3, 1, 1).expand_as(out))  # every view, every pixel
         assert torch.allclose(colour, colour.round(), atol=1e-4)  # an int colour
-        seen.update(int(round(c)) for c in colour.tolist())
+        seen.update(round(c) for c in colour.tolist())
     assert min(seen) == 225 and max(seen) == 255  # both ends of the inclusive range
 
 

@@ -237,7 +237,7 @@ def test_several_seeds_print_mean_and_95_percent_confidence_interval():
 
 def test_strategies_are_none_then_the_selector_registry_each_with_a_row_title():
     assert STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "error_guided")
-    assert STRATEGIES == ("none", *SELECTORS) and STRATEGIES is experiment.STRATEGIES
+    assert ("none", *SELECTORS) == STRATEGIES and STRATEGIES is experiment.STRATEGIES
     assert list(STRATEGY_TITLES) == list(VARIANTS)
     assert [STRATEGY_TITLES[s] for s in STRATEGIES] == ["None-VTR", "Nature", "Random", "VIAT", "MVTN", "Ours"]
     assert MAIN_STRATEGIES == ("none", "random", "error_guided", "paper")
@@ -300,7 +300,7 @@ def test_plan_adds_the_runs_the_ablations_need():
 
 
 @pytest.mark.parametrize(
-    "kwargs, match",
+    ("kwargs", "match"),
     [
         ({"strategies": ["ours"]}, "strategies"),
         ({"ablations": ["dropout"]}, "ablations"),

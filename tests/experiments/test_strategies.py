@@ -37,7 +37,7 @@ ROW = "  title: T\n  description: d\n"
 
 
 @pytest.mark.parametrize(
-    "text, match",
+    ("text", "match"),
     [
         (f"mine:\n{ROW}  selector: ours\n", r"row 'mine': unknown selector 'ours'"),
         (f"mine:\n{ROW}  selector: random\n  colour: red\n", r"row 'mine': unknown key\(s\) 'colour'"),

@@ -81,7 +81,7 @@ def test_cosine_fine_tuning_rejects_zero_epochs():
         CosineFineTuning(0)
 
 
-@pytest.mark.parametrize("schedule, expected", [("cosine", 1), ("constant", 0)])
+@pytest.mark.parametrize(("schedule", "expected"), [("cosine", 1), ("constant", 0)])
 def test_run_strategy_uses_the_configured_schedule(tmp_path, monkeypatch, schedule, expected):
     seen = {}
 
@@ -131,7 +131,7 @@ def test_models_registry_builds_each_model_class_with_its_preset():
     from lightning_vtr.models.lrgt import LRGT
     from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 
-    assert experiment.MODELS == {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
+    assert {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT} == experiment.MODELS
     for name, cls in experiment.MODELS.items():
         model = experiment.make_model(ExperimentConfig(model=name, preset="tiny"))
         assert type(model) is cls
@@ -179,7 +179,7 @@ def test_make_strategy_builds_every_registered_selector():
     from lightning_vtr.selection import SELECTORS
 
     config = ExperimentConfig(fraction=0.2, seed=3)
-    assert experiment.STRATEGIES == ("none", *SELECTORS)
+    assert ("none", *SELECTORS) == experiment.STRATEGIES
     assert experiment.make_strategy("none", config) is None
     for name, cls in SELECTORS.items():
         callback = experiment.make_strategy(name, config)

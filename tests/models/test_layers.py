@@ -27,7 +27,7 @@ def _outputs_and_grads(layer: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor,
 
 
 @pytest.mark.parametrize(
-    "head_class, plain_class, channels",
+    ("head_class", "plain_class", "channels"),
     [(VolumeHead, nn.Conv3d, c) for c in (1, 4, 8)] + [(VolumeHeadTransposed, nn.ConvTranspose3d, c) for c in (1, 3)],
 )
 def test_a_volume_head_equals_the_one_output_1x1x1_layer_it_replaces(head_class, plain_class, channels):
@@ -55,7 +55,7 @@ def test_channels_last_3d_keeps_values_and_changes_only_the_layout():
 def _reference(model: nn.Module, monkeypatch: pytest.MonkeyPatch) -> nn.Module:
     """``model`` as the previous release computed it: plain 1^3 heads, default layout everywhere."""
     reference = copy.deepcopy(model)
-    for name, module in list(reference.named_modules()):
+    for module in list(reference.modules()):
         for child_name, child in list(module.named_children()):
             if isinstance(child, VolumeHead):
                 plain = nn.Conv3d(child.in_channels, 1, 1, bias=False)

@@ -46,7 +46,7 @@ def _attend(attn: LongRangeGroupingAttention, tokens: torch.Tensor) -> torch.Ten
 
 def _reference_grouping_attention(attn: LongRangeGroupingAttention, x: torch.Tensor, views: int) -> torch.Tensor:
     """Loop over groups: gather each group's tokens across views, attend, scatter back."""
-    bv, t, _ = x.shape
+    bv, _t, _ = x.shape
     out = torch.zeros_like(x)
     for b in range(bv // views):
         rows = range(b * views, (b + 1) * views)

@@ -39,7 +39,7 @@ def test_paper_preset_parameter_count_and_output_shape():
     with torch.no_grad():
         out = model(torch.randn(1, 3, 3, 224, 224))
     assert out["voxels"].shape == (1, R, R, R) and out["view_voxels"].shape == (1, 3, R, R, R)
-    assert 0 <= out["voxels"].min() and out["voxels"].max() <= 1
+    assert out["voxels"].min() >= 0 and out["voxels"].max() <= 1
 
 
 @pytest.mark.parametrize("views", [1, 5])
@@ -178,7 +178,8 @@ def _shapes() -> torch.Tensor:
 
 
 @pytest.mark.slow
-def test_tiny_preset_overfits_a_handful_of_objects(_one_thread):
+@pytest.mark.usefixtures("_one_thread")
+def test_tiny_preset_overfits_a_handful_of_objects():
     torch.manual_seed(0)
     voxels = _shapes()
     # One view whose three channels are the silhouettes along x, y and z: they determine these shapes.
@@ -287,7 +288,7 @@ def test_backbone_trains_by_default_and_can_be_frozen(paper):
 
 def test_paper_preset_pretrains_with_the_two_stage_loss(paper):
     model, _, _ = paper
-    outputs, target, refined, two_stage = _loss_case()
+    outputs, target, _refined, two_stage = _loss_case()
     assert model.hparams.two_stage_loss is True
     torch.testing.assert_close(model.loss(outputs, target), two_stage)
 
@@ -343,7 +344,7 @@ def test_checkpoint_loads_without_the_backbone_weight_file(paper, tmp_path):
     assert all(torch.equal(v, own[k]) for k, v in loaded.state_dict().items())
     assert all(p.requires_grad for p in loaded.parameters())
     # A 0.1 checkpoint recorded freeze_backbone=None: its backbone stays frozen, as it was trained.
-    with pytest.warns(DeprecationWarning):
+    with pytest.warns(DeprecationWarning, match="freeze_backbone=None"):
         legacy = Pix2VoxPlusPlus.load_from_checkpoint(ckpt, freeze_backbone=None)
     assert not any(p.requires_grad for p in legacy.encoder.backbone.parameters())
 

@@ -128,8 +128,7 @@ def test_bad_sources(tmp_path, torch_home):
 
 def test_restoring_checkpoint_is_scoped():
     assert not is_restoring_checkpoint()
-    with pytest.raises(RuntimeError):
-        with restoring_checkpoint():
-            assert is_restoring_checkpoint()
-            raise RuntimeError
+    with pytest.raises(RuntimeError), restoring_checkpoint():  # noqa: PT012 (the flag inside the raising block)
+        assert is_restoring_checkpoint()
+        raise RuntimeError
     assert not is_restoring_checkpoint()

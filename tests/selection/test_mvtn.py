@@ -179,7 +179,7 @@ def test_trains_under_inference_mode():
 
 
 @pytest.mark.parametrize(
-    "kwargs, match",
+    ("kwargs", "match"),
     [
         ({"base_pitch": 90.0}, "base_pitch"),
         ({"base_yaw": [0.0]}, "base_yaw"),

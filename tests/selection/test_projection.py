@@ -221,12 +221,12 @@ def test_plus_y_error_is_best_seen_from_yaw_90():
     assert (scores > scores.max() - 1e-4).sum() == 1
 
 
-@pytest.mark.parametrize("positive, pole_row", [(True, 5), (False, 0)])
+@pytest.mark.parametrize(("positive", "pole_row"), [(True, 5), (False, 0)])
 def test_top_and_bottom_errors_are_best_seen_from_their_pole(positive, pole_row):
     scores = _best_and_scores(*graded_side_error(12, axis=2, positive=positive), k=30).view(6, 12)
     assert int(scores.max(dim=1).values.argmax()) == pole_row
     opposite = 5 - pole_row
-    assert bool((scores[pole_row].min() > scores[opposite].max()))
+    assert bool(scores[pole_row].min() > scores[opposite].max())
 
 
 def test_binary_error_scores_are_antipodally_symmetric():

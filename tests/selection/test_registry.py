@@ -20,19 +20,19 @@ from lightning_vtr.selection import (
 
 
 def test_names_map_to_the_selector_classes_in_table_order():
-    assert SELECTORS == {
+    assert {
         "nature": NatureSelector,
         "random": RandomSelector,
         "viat": VIATSelector,
         "mvtn": MVTNSelector,
         "error_guided": ErrorGuidedSelector,
-    }
+    } == SELECTORS
     assert list(SELECTORS) == ["nature", "random", "viat", "mvtn", "error_guided"]
     assert all(issubclass(cls, ViewSelector) for cls in SELECTORS.values())
 
 
 @pytest.mark.parametrize(
-    "name, kwargs, attributes",
+    ("name", "kwargs", "attributes"),
     [
         ("error_guided", {"k": 60, "num_views": 2}, {"k": 60, "num_views": 2, "sigma": 10.0}),
         ("random", {"num_views": 4, "mode": "area"}, {"num_views": 4, "mode": "area"}),

@@ -212,7 +212,7 @@ def test_clear_error_without_context():
 
 
 @pytest.mark.parametrize(
-    "kwargs, match",
+    ("kwargs", "match"),
     [
         ({"population": 1}, "population"),
         ({"lr": 0.0}, "lr"),

@@ -14,9 +14,9 @@ from types import SimpleNamespace
 os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
 
-import pytest  # noqa: E402
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
+import pytest
+import torch
+from torch import nn
 
 #: sizes of a 64x64 model (UNet sample size 8, VAE factor 8)
 TINY_CLIP_DIM = 32

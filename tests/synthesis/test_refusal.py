@@ -66,7 +66,7 @@ def test_render_synthesizer_refuses_records_without_meshes(rendering_layout, tmp
     dm = _datamodule(rendering_layout, tmp_path)
     dm.setup("fit")
     train = dm.split_records("train")
-    with pytest.raises(ValueError) as info:
+    with pytest.raises(ValueError, match="RenderSynthesizer renders each object's mesh") as info:
         RenderSynthesizer().check_serves(train)
     message = str(info.value)
     assert message.startswith("RenderSynthesizer renders each object's mesh, but 3 of 3 training objects have none")
@@ -89,7 +89,7 @@ def test_image_synthesizers_need_images_only(rendering_layout, tmp_path):
     train = dm.split_records("train")
     ImagesOnlySynthesizer().check_serves(train, view_set="aligned")  # no mesh needed
     CachedSynthesizer(ImagesOnlySynthesizer(), tmp_path / "cache").check_serves(train, view_set="aligned")
-    with pytest.raises(ValueError) as info:
+    with pytest.raises(ValueError, match="ImagesOnlySynthesizer synthesizes from") as info:
         ImagesOnlySynthesizer().check_serves(train, view_set="spherical")
     assert str(info.value).startswith(
         "ImagesOnlySynthesizer synthesizes from an object's source images, but 3 of 3 training objects have no "

@@ -69,7 +69,9 @@ def synth_stable(tiny_zero123) -> Zero123Synthesizer:
 # ---------------------------------------------------------------- loading
 
 
-@pytest.mark.parametrize("fixture, pose", [("synth_a", "zero123"), ("synth_b", "zero123"), ("synth_stable", "stable")])
+@pytest.mark.parametrize(
+    ("fixture", "pose"), [("synth_a", "zero123"), ("synth_b", "zero123"), ("synth_stable", "stable")]
+)
 def test_loads_both_layouts_with_inferred_projection(tiny_zero123, fixture, pose, request):
     # the layout does not tell the pose: only a name saying "stable" gives Stable Zero123's
     synth = request.getfixturevalue(fixture)
@@ -260,7 +262,9 @@ def test_pose_reaches_the_projection(synth_a, synth_b, synth_stable):
     assert [s.pose_embedding for s in (synth_a, synth_b, synth_stable)] == ["zero123", "zero123", "stable"]
     for synth in (synth_a, synth_b, synth_stable):
         seen = []
-        handle = synth.projection.register_forward_hook(lambda m, inp, out: seen.append(inp[0].detach().clone()))
+        handle = synth.projection.register_forward_hook(
+            lambda m, inp, out, seen=seen: seen.append(inp[0].detach().clone())
+        )
         try:
             synth.synthesize([_request()])
         finally:

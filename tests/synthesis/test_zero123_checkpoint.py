@@ -65,7 +65,7 @@ def _assert_same_weights(module: torch.nn.Module, reference: torch.nn.Module, ha
 
 
 @pytest.mark.parametrize(
-    "name, stable",
+    ("name", "stable"),
     [
         ("stable-zero123-diffusers", True),
         ("ashawkey/stable-zero123-diffusers", True),

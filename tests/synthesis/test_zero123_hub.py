@@ -106,7 +106,7 @@ def test_download_command():
 
 
 @pytest.mark.parametrize(
-    "repo_id, layout, pose",
+    ("repo_id", "layout", "pose"),
     [
         ("ashawkey/stable-zero123-diffusers", "layout_b", "stable"),
         ("bennyguo/zero123-xl-diffusers", "layout_b", "zero123"),

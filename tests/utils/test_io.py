@@ -21,7 +21,7 @@ def test_atomic_write_round_trips_text_and_bytes(tmp_path):
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["blob.bin", "note.txt"]
 
 
-@pytest.mark.parametrize("mode, payload", [("w", "new"), ("wb", b"new")])
+@pytest.mark.parametrize(("mode", "payload"), [("w", "new"), ("wb", b"new")])
 def test_atomic_open_replaces_the_file_on_success(tmp_path, mode, payload):
     path = tmp_path / "out.json"
     path.write_text("old")
@@ -35,26 +35,23 @@ def test_atomic_open_replaces_the_file_on_success(tmp_path, mode, payload):
 def test_atomic_open_keeps_the_old_file_and_no_temporary_when_the_body_raises(tmp_path):
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"run": 1}))
-    with pytest.raises(RuntimeError, match="boom"):
-        with atomic_open(path, "w") as f:
-            f.write('{"run": 2, "trunc')
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), atomic_open(path, "w") as f:  # noqa: PT012 (a write, then the error)
+        f.write('{"run": 2, "trunc')
+        raise RuntimeError("boom")
     assert json.loads(path.read_text()) == {"run": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["results.json"]
 
 
 def test_atomic_open_without_an_existing_file_leaves_nothing_on_error(tmp_path):
-    with pytest.raises(KeyboardInterrupt):
-        with atomic_open(tmp_path / "new.bin") as f:
-            f.write(b"partial")
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), atomic_open(tmp_path / "new.bin") as f:  # noqa: PT012 (a write, then the error)
+        f.write(b"partial")
+        raise KeyboardInterrupt
     assert list(tmp_path.iterdir()) == []
 
 
 def test_atomic_open_rejects_other_modes(tmp_path):
-    with pytest.raises(ValueError, match=r"^`mode` must be 'wb' or 'w', got 'a'$"):
-        with atomic_open(tmp_path / "x", "a"):
-            pass
+    with pytest.raises(ValueError, match=r"^`mode` must be 'wb' or 'w', got 'a'$"), atomic_open(tmp_path / "x", "a"):
+        pass
     assert list(tmp_path.iterdir()) == []
 
 
