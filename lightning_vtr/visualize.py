@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, cast, overload
 
 import numpy as np
 import torch
@@ -150,7 +150,8 @@ def voxel_mesh(occupancy: Any, colors: np.ndarray | None = None) -> trimesh.Trim
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     if colors is not None:
         rgb = np.repeat(np.concatenate(face_colors), 2, axis=0).astype(np.uint8)  # two triangles per quad
-        mesh.visual.face_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
+        visual = cast(trimesh.visual.ColorVisuals, mesh.visual)  # a mesh made from arrays has colour visuals
+        visual.face_colors = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
     return mesh
 
 
@@ -161,7 +162,7 @@ def _render_mesh(
         return np.tile(np.asarray(background, np.uint8), (len(viewpoints), image_size, image_size, 1))
     from lightning_vtr.renderer import composite, get_renderer  # imports pyrender / OpenGL on first use only
 
-    return composite(get_renderer(image_size).render(mesh, viewpoints), tuple(background))
+    return composite(get_renderer(image_size).render(mesh, viewpoints), cast("tuple[int, int, int]", tuple(background)))
 
 
 # --------------------------------------------------------------------------------------------- pictures
@@ -266,7 +267,9 @@ def error_projection_images(
     grid) but no error, white elsewhere. A view's error score in the paper is the count of coloured pixels.
 
     Args:
-        predicted, target, threshold: as in :func:`error_labels`.
+        predicted: as in :func:`error_labels`.
+        target: as in :func:`error_labels`.
+        threshold: as in :func:`error_labels`.
         viewpoints: ``(V, 2)`` (yaw, pitch) in degrees, e.g. the views a selector chose.
         image_size: output side ``S``; the projection is computed at ``R`` pixels (as the selection does) and
             enlarged by pixel repetition. ``None``: ``R``.
@@ -290,7 +293,7 @@ def error_projection_images(
     out[maps[0] == 1.0] = ERROR_COLORS[FALSE_POSITIVE]
     out[maps[0] == 2.0] = ERROR_COLORS[FALSE_NEGATIVE]
     if size != r:
-        out = np.stack([np.asarray(Image.fromarray(m).resize((size, size), Image.NEAREST)) for m in out])
+        out = np.stack([np.asarray(Image.fromarray(m).resize((size, size), Image.NEAREST)) for m in out])  # type: ignore[attr-defined]  # PIL sets the alias at runtime
     return out
 
 
@@ -334,7 +337,7 @@ def display_images(images: Any, normalize: str | None = "auto") -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- the sheet
-def _font(size: int) -> ImageFont.ImageFont:
+def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
     try:
         return ImageFont.load_default(size=size)
     except TypeError:  # Pillow < 10.1: a fixed bitmap font
@@ -389,7 +392,7 @@ def compose_sheet(
             left = label_w + c * (panel_size + gap) + gap
             picture = Image.fromarray(np.ascontiguousarray(panel[..., :3]).astype(np.uint8))
             if picture.size != (panel_size, panel_size):
-                picture = picture.resize((panel_size, panel_size), Image.BILINEAR)
+                picture = picture.resize((panel_size, panel_size), Image.BILINEAR)  # type: ignore[attr-defined]  # PIL sets the alias at runtime
             sheet.paste(picture, (left, top + caption_h))
             draw.rectangle(
                 (left - 1, top + caption_h - 1, left + panel_size, top + caption_h + panel_size),
@@ -402,6 +405,54 @@ def compose_sheet(
     return np.asarray(sheet), boxes
 
 
+@overload
+def object_sheet(
+    predicted: Any,
+    target: Any | None = ...,
+    images: Any | None = ...,
+    *,
+    input_viewpoints: Any | None = ...,
+    input_captions: Sequence[str] | None = ...,
+    selected_viewpoints: Any | None = ...,
+    display_viewpoints: Any = ...,
+    threshold: float = ...,
+    panel_size: int = ...,
+    normalize: str | None = ...,
+    title: str | None = ...,
+    return_boxes: Literal[False] = ...,
+) -> np.ndarray: ...
+@overload
+def object_sheet(
+    predicted: Any,
+    target: Any | None = ...,
+    images: Any | None = ...,
+    *,
+    input_viewpoints: Any | None = ...,
+    input_captions: Sequence[str] | None = ...,
+    selected_viewpoints: Any | None = ...,
+    display_viewpoints: Any = ...,
+    threshold: float = ...,
+    panel_size: int = ...,
+    normalize: str | None = ...,
+    title: str | None = ...,
+    return_boxes: Literal[True],
+) -> tuple[np.ndarray, dict[str, list[tuple[int, int, int, int]]]]: ...
+@overload
+def object_sheet(
+    predicted: Any,
+    target: Any | None = ...,
+    images: Any | None = ...,
+    *,
+    input_viewpoints: Any | None = ...,
+    input_captions: Sequence[str] | None = ...,
+    selected_viewpoints: Any | None = ...,
+    display_viewpoints: Any = ...,
+    threshold: float = ...,
+    panel_size: int = ...,
+    normalize: str | None = ...,
+    title: str | None = ...,
+    return_boxes: bool = ...,
+) -> np.ndarray | tuple[np.ndarray, dict[str, list[tuple[int, int, int, int]]]]: ...
 def object_sheet(
     predicted: Any,
     target: Any | None = None,

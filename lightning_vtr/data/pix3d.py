@@ -150,7 +150,7 @@ def rotate_grid(grid: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     sources = [int(np.flatnonzero(row)[0]) for row in rotation]
     out = grid.transpose(sources)
     flips = [axis for axis, row in enumerate(rotation) if row[sources[axis]] < 0]
-    return np.ascontiguousarray(np.flip(out, axis=flips) if flips else out)
+    return np.ascontiguousarray(np.flip(out, axis=tuple(flips)) if flips else out)
 
 
 # ---------------------------------------------------------------------------------------------- records
@@ -558,9 +558,12 @@ class Pix3DDataset(Dataset):
             the one the model was validated with.
         image_size: the default transform's output size.
         resolution: ``R``, the model's voxel resolution.
-        margin, use_mask, background: of :func:`crop_to_bbox` (``use_mask=False`` keeps the photograph's
-            own background).
-        fit, pooling: of :func:`downsample_voxels`.
+        margin: the crop's margin, as in :func:`crop_to_bbox`.
+        use_mask: whether to composite with the mask, as in :func:`crop_to_bbox` (``False`` keeps the
+            photograph's own background).
+        background: the colour under the mask, as in :func:`crop_to_bbox`.
+        fit: as in :func:`downsample_voxels`.
+        pooling: as in :func:`downsample_voxels`.
         yaw_offset: an extra turn about +Z (multiple of 90 degrees) of voxels and viewpoints.
         view_set: the ``view_set`` name items carry. The package's models accept only
             :data:`~lightning_vtr.protocol.VIEW_SETS` there (their ``test_step`` logs per set), so Pix3D is

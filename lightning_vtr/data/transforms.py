@@ -300,7 +300,7 @@ class BackgroundFolder:
                 if h < height or w < width:
                     scale = max(height / h, width / w)
                     h, w = max(height, math.ceil(h * scale)), max(width, math.ceil(w * scale))
-                    img = img.convert("RGB").resize((w, h), Image.Resampling.BILINEAR)
+                    img = img.convert("RGB").resize((w, h), Image.BILINEAR)  # type: ignore[attr-defined]  # PIL sets the alias at runtime
                 top = min(int(position[0] * (h - height + 1)), h - height)
                 left = min(int(position[1] * (w - width + 1)), w - width)
                 # Crop before converting: only the window is converted and copied.
@@ -461,9 +461,17 @@ class ImageTransform:
         image_size: output side ``S`` in pixels.
         background: RGB background (0-255) composited under transparent pixels.
         normalize: one of :data:`NORMALIZATIONS`.
-        crop, background_range, brightness, contrast, saturation, lighting_std, hflip, permute_rgb, clamp,
-        background_folder: as in :class:`ImageRecipe` (all but ``crop`` and ``clamp`` are random ops). The
-            folder is scanned once, here (:class:`BackgroundFolder`).
+        crop: as in :class:`ImageRecipe` (deterministic).
+        background_range: as in :class:`ImageRecipe` (random).
+        brightness: as in :class:`ImageRecipe` (random).
+        contrast: as in :class:`ImageRecipe` (random).
+        saturation: as in :class:`ImageRecipe` (random).
+        lighting_std: as in :class:`ImageRecipe` (random).
+        hflip: as in :class:`ImageRecipe` (random).
+        permute_rgb: as in :class:`ImageRecipe` (random).
+        clamp: as in :class:`ImageRecipe` (deterministic).
+        background_folder: as in :class:`ImageRecipe` (random); the folder is scanned once, here
+            (:class:`BackgroundFolder`).
 
     Call it on ``(H, W, 4)`` or ``(T, H, W, 4)`` uint8 arrays (the ``T`` views of one sample); returns
     ``(3, S, S)`` or ``(T, 3, S, S)`` float32.

@@ -17,9 +17,9 @@ import csv
 import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, Sequence, Sized
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -68,9 +68,13 @@ def evaluate_dataset(
             ``device`` and put in eval mode when it has ``to`` / ``eval``).
         dataset: items with ``images``, ``voxels`` and ``category`` (:class:`~lightning_vtr.data.FolderTestSet`,
             :class:`~lightning_vtr.data.pix3d.Pix3DDataset`, ``VTRDataset``).
-        batch_size, device, num_workers: of the forward passes.
+        batch_size: objects per forward pass.
+        device: where the forward passes run.
+        num_workers: data-loading worker processes.
         thresholds: the IoU thresholds (each gives ``iou@<t>``).
-        fscore_threshold, fscore_points, fscore_convention: of :class:`~lightning_vtr.metrics.VoxelFScore`.
+        fscore_threshold: as in :class:`~lightning_vtr.metrics.VoxelFScore`.
+        fscore_points: as in :class:`~lightning_vtr.metrics.VoxelFScore`.
+        fscore_convention: as in :class:`~lightning_vtr.metrics.VoxelFScore`.
 
     Returns:
         ``{"overall": {...}, "categories": {category: {...}}, "best_threshold": t}``, each inner dict holding
@@ -79,7 +83,7 @@ def evaluate_dataset(
     Raises:
         ValueError: the dataset is empty, or a prediction's shape is not the ground truth's (names both).
     """
-    if len(dataset) == 0:
+    if len(cast(Sized, dataset)) == 0:  # a map-style dataset
         raise ValueError("`dataset` must hold at least one item, got an empty dataset")
     batch_size = check_int("batch_size", batch_size, minimum=1)
     device = torch.device(device)

@@ -377,10 +377,21 @@ class LRGT(VoxelReconstructionModule):
     Args:
         preset: ``"paper"`` or ``"tiny"``.
         num_views: views per training sample (the protocol's ``num_views``; 3 in the paper).
-        image_size, patch_size, embed_dim, depth, num_heads, grouping_blocks, group_stride,
-        num_merged_tokens, merger_k, merger_depth, decoder_depth, decoder_stage_depth, decoder_heads,
-        query_grid, upsample_channels: architecture overrides (see :class:`LRGTSpec`);
-            ``grouping_blocks`` are 0-based block indices.
+        image_size: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        patch_size: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        embed_dim: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        depth: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        num_heads: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        grouping_blocks: architecture override of :class:`LRGTSpec`'s field (0-based block indices); ``None`` keeps the preset's.
+        group_stride: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        num_merged_tokens: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        merger_k: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        merger_depth: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        decoder_depth: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        decoder_stage_depth: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        decoder_heads: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        query_grid: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
+        upsample_channels: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
         pretrained_encoder: timm-format DeiT (distilled) weights loaded into the encoder at construction
             (see :func:`~lightning_vtr.models.vit.load_timm_deit`): a local file, a URL (downloaded once into
             torch.hub's cache) or ``"imagenet"`` (DeiT-B distilled 224, :data:`~lightning_vtr.models.weights.
@@ -390,8 +401,9 @@ class LRGT(VoxelReconstructionModule):
         weight_decay: AdamW weight decay (torch's default; the paper does not state one).
         milestones: epochs at which the learning rate is multiplied by ``gamma`` ([60, 90], 0.1).
         gamma: the decay factor.
-        validation_fscore, categories, log_sheets: passed to
-            :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        validation_fscore: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        categories: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        log_sheets: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
 
     Attributes:
         spec: the resolved architecture (the preset with the overrides applied).

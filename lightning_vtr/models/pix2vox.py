@@ -392,8 +392,12 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s,
             see :func:`reference_init_`), ``"torch"`` (PyTorch's defaults) or ``None``: the preset's
             (``paper``: ``"reference"``, ``tiny``: ``"torch"``).
-        iou_thresholds, fscore_threshold, fscore_points, validation_fscore, categories, log_sheets: see
-            :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        iou_thresholds: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        fscore_threshold: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        fscore_points: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        validation_fscore: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        categories: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        log_sheets: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
 
     Raises:
         ValueError: on an unknown preset or init, weights for a preset without ResNet-50, or bad sizes.
@@ -493,7 +497,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         # 5. the 3-D layers' weights in the layout of their activations (see lightning_vtr.models.layers): a weight
         #    in PyTorch's default layout sends a one-channel input (the refiner's) down the slow path
         for part in (self.decoder, self.merger, self.refiner):
-            part.to(memory_format=torch.channels_last_3d)
+            part.to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]  # Module.to takes it; stub lacks it
 
     @classmethod
     def from_official_checkpoint(

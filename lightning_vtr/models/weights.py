@@ -150,7 +150,9 @@ def load_weights(
 
     Args:
         source: a local path, an ``http(s)://`` or ``file://`` URL, ``"imagenet"``, or a state dict.
-        kind, check_hash, progress: see :func:`fetch_weights`.
+        kind: as in :func:`fetch_weights`.
+        check_hash: as in :func:`fetch_weights`.
+        progress: as in :func:`fetch_weights`.
 
     Raises:
         TypeError: if ``source`` is none of these.
