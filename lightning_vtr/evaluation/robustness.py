@@ -17,6 +17,7 @@ import json
 import math
 import zlib
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -450,6 +451,7 @@ def robustness_map(
     batch_size: int = 64,
     objects_per_call: int = 4,
     threshold: float = DEFAULT_THRESHOLD,
+    overlap: bool = True,
     progress: bool = True,
 ) -> RobustnessMap:
     """Measure a model's IoU on view sets drawn around every bin of the ``K``-degree grid, per object.
@@ -459,7 +461,7 @@ def robustness_map(
     views whatever else is measured with it). ``objects_per_call`` objects at a time are rendered in one
     ``synthesizer.synthesize`` call (every view of every set), transformed, and predicted from in batches of
     ``batch_size`` sets under :func:`torch.inference_mode` with the model in eval mode (its mode is restored
-    afterwards); each prediction's IoU at ``threshold`` against the object's voxels is averaged over its bin's sets.
+    afterwards), in a worker thread while the next objects render (``overlap``); each prediction's IoU at ``threshold`` against the object's voxels is averaged over its bin's sets.
 
     Args:
         model: a :class:`~lightning_vtr.protocol.ReconstructionModel` (``predict_voxels``, ``image_size``,
@@ -480,6 +482,8 @@ def robustness_map(
         batch_size: view sets per ``predict_voxels`` call.
         objects_per_call: objects per synthesizer call.
         threshold: occupancy threshold of the IoU.
+        overlap: predict a chunk in a worker thread while the next one renders (same result; ``False``: one
+            thread does both in turn).
         progress: show a tqdm bar over the objects.
 
     Returns:
@@ -523,6 +527,38 @@ def robustness_map(
     if hasattr(model, "eval"):
         model.eval()
     bar = tqdm(total=len(records), desc=f"Robustness map (K = {k})", disable=not progress, leave=False)
+
+    def predict_chunk(images: list[np.ndarray], targets: Tensor, start: int) -> tuple[int, np.ndarray]:
+        """IoU ``(objects of the chunk, bins)`` of one rendered chunk (runs in the prediction thread)."""
+        inputs = torch.cat([torch.as_tensor(transform(np.asarray(img))) for img in images])
+        inputs = inputs.reshape(len(images) * per_object, views_per_set, *inputs.shape[1:])
+        scores = []
+        with torch.inference_mode():  # thread-local: entered in the thread that predicts
+            for lo in range(0, inputs.shape[0], batch_size):
+                batch = inputs[lo : lo + batch_size].to(device)
+                pred = model.predict_voxels(batch)
+                target = targets[torch.arange(lo, lo + batch.shape[0]) // per_object]
+                if not isinstance(pred, Tensor) or tuple(pred.shape) != tuple(target.shape):
+                    found = tuple(pred.shape) if isinstance(pred, Tensor) else type(pred).__name__
+                    raise ValueError(
+                        f"`{type(model).__name__}.predict_voxels` must return occupancy probabilities of shape "
+                        f"{tuple(target.shape)} (the objects' voxel grids) for images {tuple(batch.shape)}, "
+                        f"got {found}"
+                    )
+                pred = check_probabilities("predict_voxels", pred.detach().float().cpu())
+                scores.append(voxel_iou(pred, target, thresholds=(threshold,))[:, 0])
+        per_set = torch.cat(scores).double().reshape(len(images), n_bins, sets_per_bin)
+        return start, per_set.mean(-1).numpy()
+
+    def _store(result: tuple[int, np.ndarray]) -> None:
+        first, values = result
+        iou[first : first + len(values)] = values
+        bar.update(len(values))
+
+    # Rendering stays in this thread (a GL context is bound to the thread that made it current); the model
+    # predicts the previous chunk in a worker thread meanwhile. One worker: the model sees its calls in order.
+    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robustness-predict") if overlap else None
+    pending: Future | None = None
     try:
         for start in range(0, len(records), objects_per_call):
             chunk = records[start : start + objects_per_call]
@@ -555,29 +591,18 @@ def robustness_map(
                     f"The synthesizer returned {[len(img) for img in images]} images for {len(chunk)} objects of "
                     f"{per_object * views_per_set} views each"
                 )
-            inputs = torch.cat([torch.as_tensor(transform(np.asarray(img))) for img in images])
-            inputs = inputs.reshape(len(chunk) * per_object, views_per_set, *inputs.shape[1:])
             targets = torch.stack([torch.as_tensor(load_target(rec)).float() for rec in chunk])
-            scores = []
-            with torch.inference_mode():
-                for lo in range(0, inputs.shape[0], batch_size):
-                    batch = inputs[lo : lo + batch_size].to(device)
-                    pred = model.predict_voxels(batch)
-                    rows = torch.arange(lo, lo + batch.shape[0]) // per_object
-                    target = targets[rows]
-                    if not isinstance(pred, Tensor) or tuple(pred.shape) != tuple(target.shape):
-                        found = tuple(pred.shape) if isinstance(pred, Tensor) else type(pred).__name__
-                        raise ValueError(
-                            f"`{type(model).__name__}.predict_voxels` must return occupancy probabilities of shape "
-                            f"{tuple(target.shape)} (the objects' voxel grids) for images {tuple(batch.shape)}, "
-                            f"got {found}"
-                        )
-                    pred = check_probabilities("predict_voxels", pred.detach().float().cpu())
-                    scores.append(voxel_iou(pred, target, thresholds=(threshold,))[:, 0])
-            per_set = torch.cat(scores).double().reshape(len(chunk), n_bins, sets_per_bin)
-            iou[start : start + len(chunk)] = per_set.mean(-1).numpy()
-            bar.update(len(chunk))
+            if pending is not None:  # at most one chunk waits for the model: memory stays bounded
+                _store(pending.result())
+            args = (images, targets, start)
+            pending = executor.submit(predict_chunk, *args) if executor is not None else None
+            if executor is None:
+                _store(predict_chunk(*args))
+        if pending is not None:
+            _store(pending.result())
     finally:
+        if executor is not None:
+            executor.shutdown(wait=True, cancel_futures=True)
         bar.close()
         if hasattr(model, "train"):
             model.train(was_training)

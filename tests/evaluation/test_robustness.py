@@ -157,8 +157,8 @@ def test_map_shape_determinism_and_seed(objects):
     assert first.categories == [r.category for r in objects]
     assert first.aligned_pitch == pytest.approx(30.0)
     assert ((first.iou >= 0) & (first.iou <= 1)).all()
-    again = measure(model, objects, seed=0)
-    np.testing.assert_array_equal(first.iou, again.iou)
+    again = measure(model, objects, seed=0, overlap=False, objects_per_call=1, batch_size=5)
+    np.testing.assert_array_equal(first.iou, again.iou)  # the batching and the prediction thread change nothing
     other = measure(model, objects, seed=1)
     assert not np.array_equal(first.iou, other.iou)
     # an object's views depend on the seed and the object, not on the objects measured with it
@@ -298,3 +298,15 @@ def test_selection_scores_are_aligned_with_the_map(objects):
     assert [line.split("|")[1].strip() for line in table.splitlines()[2:]] == list(scores)
     with pytest.raises(ValueError, match="shape"):
         validity_table(rmap, {"paper": scores["paper"][:2]})
+
+
+class CoarseModel(ImageMeanModel):
+    """Predicts a 16^3 grid for 32^3 objects."""
+
+    def predict_voxels(self, images):
+        return super().predict_voxels(images)[:, ::2, ::2, ::2]
+
+
+def test_a_model_output_of_the_wrong_grid_is_refused(objects):
+    with pytest.raises(ValueError, match=r"got \(8, 16, 16, 16\)"):
+        robustness_map(CoarseModel(), objects[:1], k=90, progress=False, synthesizer=RenderSynthesizer(image_size=32))
