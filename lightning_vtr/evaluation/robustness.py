@@ -129,7 +129,9 @@ class RobustnessMap:
         views_per_set: views per set given to the model.
         sets_per_bin: view sets per bin and object.
         seed: the seed the view sets were drawn with.
-        aligned_pitch: the elevation of the dataset's Aligned views (degrees), ``None`` when unknown.
+        aligned_pitch: the elevation of the dataset's Aligned views (degrees; the median pitch of the objects'
+            ``aligned`` view set), ``None`` when unknown.
+        extra: free-form JSON-serialisable notes (the model's name, a checkpoint path), kept by the CSV files.
 
     Example:
         >>> m = RobustnessMap.from_iou(np.full((2, 18), 0.5), k=60, object_ids=["a", "b"], categories=["c", "c"])

@@ -262,10 +262,18 @@ def test_maps_of_a_pair_share_one_colour_scale():
     assert shared_limits({"a": a, "b": b}) == pytest.approx((0.3, 0.9))
 
 
+class SilhouetteModel(ImageMeanModel):
+    """Occupancy ``sigmoid(10 (silhouette area - 0.15) + b)``: it depends on a single view too, unlike its parent."""
+
+    def predict_voxels(self, images):
+        area = (images[:, :, 0] < 2.0).float().mean(dim=(1, 2, 3))  # white is 2.25 after ImageNet normalisation
+        return torch.sigmoid(10 * (area - 0.15)[:, None, None, None] + self.bias)
+
+
 def test_selection_scores_are_aligned_with_the_map(objects):
     from lightning_vtr.evaluation.robustness_scores import bce_per_object, selection_scores, validity_table
 
-    model = ImageMeanModel()
+    model = SilhouetteModel()
     synthesizer = RenderSynthesizer(image_size=32)
     scores = selection_scores(model, objects, k=K, synthesizer=synthesizer)
     assert sorted(scores) == ["input", "paper", "released", "visible"]
@@ -288,6 +296,7 @@ def test_selection_scores_are_aligned_with_the_map(objects):
         pred = model.predict_voxels(ImageTransform(32)(rendered)[None])
     expected = bce_per_object(pred, load_voxels(objects[1])[None])
     assert scores["input"][1, 7] == pytest.approx(float(expected), rel=1e-5)
+    assert scores["input"][1].std() > 1e-4  # the views differ, and so do their losses
     # a prediction equal to the truth has no error to project
     oracle = OracleModel(torch.stack([load_voxels(r) for r in objects]), per_object=1)
     exact = selection_scores(oracle, objects, k=K, scores=("paper", "released", "visible"))
