@@ -126,7 +126,7 @@ def export_prediction(
     voxels: Any,
     *,
     threshold: float = DEFAULT_THRESHOLD,
-    mesh_format: str = "obj",
+    mesh_format: str | None = "obj",
     sheet: np.ndarray | None = None,
     name: str = "prediction",
 ) -> dict[str, Path]:

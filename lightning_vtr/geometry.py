@@ -101,7 +101,7 @@ def check_viewpoints(viewpoints: Tensor, name: str = "viewpoints") -> Tensor:
     return vp
 
 
-def wrap_yaw(yaw: Tensor) -> Tensor:
+def wrap_yaw(yaw: Tensor | np.ndarray) -> Tensor:
     """Wrap yaw angles (degrees) into ``[-180, 180)``."""
     yaw = _as_tensor(yaw)
     return torch.remainder(yaw + 180.0, 360.0) - 180.0

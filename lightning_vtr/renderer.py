@@ -180,7 +180,9 @@ class Renderer:
         if len(mesh.faces) == 0:
             raise ValueError("`mesh` has no triangles; nothing to render")
         material = None
-        if not mesh.visual.defined:  # keep vertex/face colours and textures when the mesh has them
+        if (
+            mesh.visual is None or not mesh.visual.defined
+        ):  # keep vertex/face colours and textures when the mesh has them
             material = pyrender.MetallicRoughnessMaterial(
                 baseColorFactor=(*self.base_color, 1.0), metallicFactor=0.0, roughnessFactor=0.8, alphaMode="OPAQUE"
             )

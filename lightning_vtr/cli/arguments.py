@@ -47,7 +47,7 @@ def ratios(text: str) -> tuple[float, float, float]:
         values = ()
     if len(values) != 3:
         raise argparse.ArgumentTypeError(f"expected three comma-separated ratios train,val,test, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def positive_int(text: str) -> int:

@@ -18,6 +18,7 @@ import re
 import shlex
 import sys
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
@@ -62,7 +63,7 @@ class _Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are raised as :class:`_ParseError` (one line from :func:`main`)
     instead of printing the usage and exiting."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         raise _ParseError(self.prog, message)
 
 

@@ -256,7 +256,7 @@ def check_checkpoint_class(path: str, model: type | None) -> None:
     except Exception:  # check_checkpoint read it already; a full pickle is left to Lightning
         return
 
-    def takes(cls: type) -> bool:
+    def takes(cls: type[object]) -> bool:
         parameters = inspect.signature(cls.__init__).parameters
         if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
             return True

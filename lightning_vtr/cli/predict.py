@@ -51,7 +51,7 @@ def _rgb(text: str) -> tuple[int, int, int]:
         values = ()
     if len(values) != 3 or not all(0 <= v <= 255 for v in values):
         raise argparse.ArgumentTypeError(f"expected R,G,B with integers in 0..255, e.g. 255,255,255, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

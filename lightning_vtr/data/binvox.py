@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 
@@ -90,6 +90,18 @@ def _read_header(f, path: Path) -> tuple[tuple[int, int, int], tuple[float, floa
     return dims, translate or (0.0, 0.0, 0.0), 1.0 if scale is None else scale
 
 
+@overload
+def read_binvox(
+    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: Literal[False] = ...
+) -> np.ndarray: ...
+@overload
+def read_binvox(
+    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: Literal[True]
+) -> tuple[np.ndarray, tuple[float, float, float], float]: ...
+@overload
+def read_binvox(
+    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: bool = ...
+) -> np.ndarray | tuple[np.ndarray, tuple[float, float, float], float]: ...
 def read_binvox(
     path: str | os.PathLike,
     *,

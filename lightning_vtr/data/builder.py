@@ -51,7 +51,7 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
@@ -192,7 +192,9 @@ def pix3d_viewpoints(
         ``(views_per_object, 2)`` float64 (yaw, pitch) in degrees.
     """
     g = torch.Generator().manual_seed(_stable_int(seed, category, object_id, PIX3D_VIEW_SET))
-    vp = sample_uniform_viewpoints(views_per_object, mode="angle", pitch_range=tuple(pitch_range), generator=g)
+    vp = sample_uniform_viewpoints(
+        views_per_object, mode="angle", pitch_range=cast("tuple[float, float]", tuple(pitch_range)), generator=g
+    )
     return vp.double().numpy()
 
 
@@ -326,7 +328,8 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
 
             mesh = make_object(task.category, task.index, seed=opts["seed"])
         else:
-            mesh = load_mesh(task.path, up_axis=task.up_axis)
+            # a "mesh" task has a path; load_mesh checks the up axis
+            mesh = load_mesh(cast(str, task.path), up_axis=cast(Literal["y", "z"], task.up_axis))
         directory.mkdir(parents=True, exist_ok=True)
         voxels = voxelize(mesh, opts["resolution"])
         if not voxels.any():

@@ -10,6 +10,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -55,7 +56,7 @@ def load_rgba(path: str | Path) -> np.ndarray:
 
 def load_voxels(record: ObjectRecord) -> Tensor:
     """``(R, R, R)`` float occupancy of an object, in the package frame whatever its file's up axis."""
-    up_axis = getattr(record, "voxel_up_axis", "z")
+    up_axis: Literal["y", "z"] = getattr(record, "voxel_up_axis", "z")  # read_binvox checks it
     return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis).astype(np.float32))
 
 

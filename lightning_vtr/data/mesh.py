@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import trimesh
@@ -120,7 +120,7 @@ def _merge_scene(loaded: trimesh.Scene | trimesh.Trimesh | object) -> trimesh.Tr
                 meshes.append(geometry.copy().apply_transform(transform))
         if not meshes:
             return None
-        return meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
+        return meshes[0] if len(meshes) == 1 else cast(trimesh.Trimesh, trimesh.util.concatenate(meshes))
     return None
 
 

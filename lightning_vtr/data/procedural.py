@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -523,7 +524,7 @@ def _rng(category: str, index: int, seed: int) -> np.random.Generator:
 def _build(category: str, index: int, seed: int) -> tuple[str, trimesh.Trimesh]:
     index = _check_args(category, index)
     variant, parts = _BUILDERS[category](_rng(category, index, seed))
-    return variant, normalize_mesh(trimesh.util.concatenate(parts))
+    return variant, normalize_mesh(cast(trimesh.Trimesh, trimesh.util.concatenate(parts)))  # meshes in, a mesh out
 
 
 def make_object(category: str, index: int, seed: int = 0) -> trimesh.Trimesh:

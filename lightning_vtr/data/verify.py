@@ -14,7 +14,7 @@ import multiprocessing as mp
 import os
 import time
 from collections.abc import Iterator, Mapping
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -206,6 +206,7 @@ def _map_objects(
         yield from map(check, keys, infos)
         return
     # "fork": a spawned worker would import torch (seconds) and re-run an unguarded __main__ script.
+    pool: Executor
     if "fork" in mp.get_all_start_methods():
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"))
     else:  # pragma: no cover - Windows

@@ -91,7 +91,7 @@ def _mask_silhouette(mask: np.ndarray, size: int) -> np.ndarray:
     square = np.zeros((side, side), np.uint8)
     top, left = (side - (r1 - r0)) // 2, (side - (c1 - c0)) // 2
     square[top : top + r1 - r0, left : left + c1 - c0] = np.where(mask[r0:r1, c0:c1] > 127, 255, 0)
-    resized = np.asarray(Image.fromarray(square).resize((size, size), Image.BOX))
+    resized = np.asarray(Image.fromarray(square).resize((size, size), Image.BOX))  # type: ignore[attr-defined]  # PIL sets the alias at runtime
     return resized >= 128
 
 

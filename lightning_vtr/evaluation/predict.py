@@ -392,7 +392,7 @@ def prediction_sheet(result: dict[str, Any], threshold: float, panel_size: int) 
 
 
 def _composite_square(rgba: np.ndarray, size: int) -> np.ndarray:
-    return np.asarray(Image.fromarray(composite(rgba)).resize((size, size), Image.BILINEAR))
+    return np.asarray(Image.fromarray(composite(rgba)).resize((size, size), Image.BILINEAR))  # type: ignore[attr-defined]  # PIL sets the alias at runtime
 
 
 # --------------------------------------------------------------------------------------------- exporting

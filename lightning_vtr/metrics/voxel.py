@@ -9,7 +9,7 @@ the overall and the per-category means. All states are sums, so they sync across
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -71,7 +71,7 @@ class _PerObjectMean(Metric):
             state = getattr(self, name)
             setattr(self, name, torch.cat([state, state.new_zeros(shape)]))
             # reset() restores torchmetrics' recorded defaults: keep them the vocabulary's size.
-            default = self._defaults[name]
+            default = cast(Tensor, self._defaults[name])  # a tensor state, not a list one
             self._defaults[name] = torch.cat([default, default.new_zeros(shape)])
 
     def _accumulate(self, scores: Tensor, categories: Sequence[str] | None) -> None:

@@ -44,8 +44,8 @@ import abc
 import math
 import os
 import warnings
-from collections.abc import Sequence
-from typing import IO, TYPE_CHECKING, Any, ClassVar
+from collections.abc import Sequence, Sized
+from typing import IO, TYPE_CHECKING, Any, ClassVar, cast
 
 import lightning as L
 import torch
@@ -61,12 +61,17 @@ from lightning_vtr.utils.validation import check_choice, check_int, check_type
 try:  # Lightning's classmethod that refuses to be called on an instance (whose result would be dropped)
     from lightning.pytorch.utilities.model_helpers import _restricted_classmethod
 except ImportError:  # pragma: no cover - depends on the Lightning version
-    _restricted_classmethod = classmethod
+    _restricted_classmethod = classmethod  # type: ignore[misc]  # the stand-in for older Lightning
 
 if TYPE_CHECKING:
     from typing_extensions import Self  # typing.Self needs Python 3.11
 
 __all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
+
+
+def _metric_group(group: nn.Module) -> dict[str, VoxelIoU | VoxelFScore]:
+    """The metrics of a group ``{"iou": VoxelIoU, "fscore": VoxelFScore}`` (``nn.ModuleDict`` types them ``Module``)."""
+    return cast("dict[str, VoxelIoU | VoxelFScore]", dict(cast(nn.ModuleDict, group).items()))
 
 
 class VoxelReconstructionModule(L.LightningModule, abc.ABC):
@@ -158,7 +163,11 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             kwargs["weights_only"] = weights_only
         with restoring_checkpoint():
             return super().load_from_checkpoint(
-                checkpoint_path, map_location=map_location, hparams_file=hparams_file, strict=strict, **kwargs
+                checkpoint_path,  # type: ignore[arg-type]  # Lightning takes any PathLike
+                map_location=map_location,
+                hparams_file=hparams_file,  # type: ignore[arg-type]  # likewise
+                strict=strict,
+                **kwargs,
             )
 
     @classmethod
@@ -184,14 +193,14 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         if not isinstance(hparams, dict):
             return
 
-        def takes_all(model_cls: type) -> bool:
+        def takes_all(model_cls: type[object]) -> bool:
             params = inspect.signature(model_cls.__init__).parameters.values()
             if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
                 return True
             return {k for k in hparams if not str(k).startswith("_")} <= {p.name for p in params}
 
         def subclasses(base: type) -> list[type]:
-            found = []
+            found: list[type] = []
             for sub in base.__subclasses__():
                 found += [sub, *subclasses(sub)]
             return found
@@ -287,10 +296,11 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
     def setup(self, stage: str) -> None:
         if self.trainer is None:
             return
-        categories = getattr(self.trainer.datamodule, "categories", None) if self.trainer.datamodule else None
+        datamodule = self.trainer.datamodule  # type: ignore[attr-defined]  # set by Lightning's data connector
+        categories = getattr(datamodule, "categories", None) if datamodule else None
         if categories:
             for group in (self.val_metrics, *self.test_metrics.values()):
-                for metric in group.values():
+                for metric in _metric_group(group).values():
                     metric.add_categories(list(categories))
 
     def _batch(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
@@ -322,13 +332,13 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             return
         self.log("val/loss", self.loss(outputs, voxels), batch_size=keep, add_dataloader_idx=False)
         probs = outputs["voxels"].detach()
-        self.val_metrics["iou"].update(probs, voxels, categories)
+        cast(VoxelIoU, self.val_metrics["iou"]).update(probs, voxels, categories)
         if self.validation_fscore:
-            self.val_metrics["fscore"].update(probs, voxels, categories)
+            cast(VoxelFScore, self.val_metrics["fscore"]).update(probs, voxels, categories)
 
     def on_validation_epoch_start(self) -> None:
         # As in ``on_test_epoch_start``: own states in this process's memory (``ddp_spawn`` shares them).
-        for metric in self.val_metrics.values():
+        for metric in _metric_group(self.val_metrics).values():
             metric.reset()
         self._items_seen["val"] = {}
 
@@ -360,7 +370,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             index = [i for i, s in enumerate(view_sets) if s == name]
             sel = torch.tensor(index, device=probs.device)
             cats = [categories[i] for i in index] if categories is not None else None
-            for metric in self.test_metrics[name].values():
+            for metric in _metric_group(self.test_metrics[name]).values():
                 metric.update(probs.index_select(0, sel), voxels.index_select(0, sel), cats)
 
     def on_test_epoch_start(self) -> None:
@@ -368,7 +378,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         # metric states in shared memory, so in-place updates would add every process's objects (and a later
         # test in the launching process would start from their sum).
         for group in self.test_metrics.values():
-            for metric in group.values():
+            for metric in _metric_group(group).values():
                 metric.reset()
         self._items_seen["test"] = {}
 
@@ -387,9 +397,9 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         seen = 0 if batch_idx == 0 else seen_by_loader.get(dataloader_idx, 0)
         seen_by_loader[dataloader_idx] = seen + batch_size
         sampler = self._eval_sampler(stage, dataloader_idx)
-        if sampler is None or sampler.total_size <= len(sampler.dataset):
+        if sampler is None or sampler.total_size <= len(cast(Sized, sampler.dataset)):
             return batch_size  # no padding: one process, an unpadded sampler, or drop_last
-        owned = len(range(sampler.rank, len(sampler.dataset), sampler.num_replicas))
+        owned = len(range(sampler.rank, len(cast(Sized, sampler.dataset)), sampler.num_replicas))
         return max(0, min(batch_size, owned - seen))
 
     def _eval_sampler(self, stage: str, dataloader_idx: int) -> DistributedSampler | None:
@@ -410,13 +420,14 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         for name, group in self.test_metrics.items():
             self._log_metrics(group, f"test/{name}", per_category=True)
 
-    def _log_metrics(self, group: nn.ModuleDict, prefix: str, per_category: bool) -> None:
+    def _log_metrics(self, group: nn.Module, prefix: str, per_category: bool) -> None:
         """Compute (synced), log and reset a group of IoU / F-score metrics; skip empty ones.
 
         Every process computes every metric, updated or not, because computing is a collective
         under DDP; a metric without objects on any process yields NaN and is not logged.
         """
-        iou, fscore = group["iou"], group["fscore"]
+        metrics = _metric_group(group)
+        iou, fscore = metrics["iou"], metrics["fscore"]
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*compute.*before.*update.*")
             values = self._flatten(iou.compute().reshape(-1), fscore.compute())

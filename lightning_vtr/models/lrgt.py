@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar, cast
 
 import torch
 import torch.nn.functional as F
@@ -36,9 +36,13 @@ from torch import Tensor, nn
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.lrgt_decoder import ProgressiveUpsamplingDecoder, decoder_stage_layout
 from lightning_vtr.models.lrgt_merger import SimilarTokenMerger
-from lightning_vtr.models.vit import Attention, DistilledVisionTransformer, load_timm_deit
+from lightning_vtr.models.vit import Attention, Block, DistilledVisionTransformer, load_timm_deit
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
+
+if TYPE_CHECKING:
+    from lightning.pytorch.utilities.parsing import AttributeDict
+    from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 __all__ = [
     "LRGT",
@@ -251,7 +255,7 @@ class LongRangeGroupingAttention(Attention):
         self.group_stride = group_stride
         self.signature = nn.Conv2d(dim, dim, kernel_size=3, padding=1, groups=dim)
         nn.init.zeros_(self.signature.weight)
-        nn.init.zeros_(self.signature.bias)
+        nn.init.zeros_(cast(Tensor, self.signature.bias))  # a Conv2d with bias
 
     def _to_groups(self, t: Tensor, num_views: int) -> Tensor:
         """``(B V, h, g^2, d) -> (B s^2, h, V (g/s)^2, d)``, groups ordered by residue ``(a, b)``."""
@@ -278,7 +282,8 @@ class LongRangeGroupingAttention(Attention):
             )
         q, k, v = self.split_heads(x)
         # 1. attention inside each residue group, across views.
-        groups = F.scaled_dot_product_attention(*(self._to_groups(z, num_views) for z in (q, k, v)))
+        qg, kg, vg = (self._to_groups(z, num_views) for z in (q, k, v))
+        groups = F.scaled_dot_product_attention(qg, kg, vg)
         out = self.merge_heads(self._from_groups(groups, num_views))
         # 2. inter-view feature signature from each view's value map.
         g = self.grid_size
@@ -322,11 +327,12 @@ class LRGTNetwork(nn.Module):
         )
         self.grouping_blocks = spec.grouping_blocks
         for i in self.grouping_blocks:
-            old = self.encoder.blocks[i].attn
+            block = cast(Block, self.encoder.blocks[i])
+            old = block.attn
             new = LongRangeGroupingAttention(spec.embed_dim, spec.num_heads, self.encoder.grid_size, spec.group_stride)
             # Keep the block's (possibly pretrained) qkv/proj; only the signature conv is new.
             new.qkv, new.proj = old.qkv, old.proj
-            self.encoder.blocks[i].attn = new
+            block.attn = new
         self.merger = SimilarTokenMerger(
             spec.embed_dim, spec.num_heads, spec.num_merged_tokens, spec.merger_k, spec.merger_depth
         )
@@ -483,8 +489,8 @@ class LRGT(VoxelReconstructionModule):
         with torch.autocast(device_type=probs.device.type, enabled=False):
             return dice_loss(probs.float(), target.float())
 
-    def configure_optimizers(self):
-        hp = self.hparams
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
+        hp = cast("AttributeDict", self.hparams)
         optimizer = torch.optim.AdamW(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
         milestones = list(hp.milestones) if hp.milestones is not None else [60, 90]
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=milestones, gamma=hp.gamma)

@@ -177,7 +177,7 @@ class ProgressiveUpsamplingDecoder(nn.Module):
         self.resolution = query_grid * 2 ** len(upsample_channels)
         self.reset_parameters()
         # the upsampling convolutions in the layout of their inputs (see lightning_vtr.models.layers)
-        self.stages.to(memory_format=torch.channels_last_3d)
+        self.stages.to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]  # Module.to takes it; stub lacks it
 
     def reset_parameters(self) -> None:
         """The released code's initialisation (see the class docstring)."""

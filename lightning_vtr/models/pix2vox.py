@@ -15,7 +15,7 @@ import pickle
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 import torch
@@ -29,6 +29,10 @@ from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.validation import check_choice, check_type
+
+if TYPE_CHECKING:
+    from lightning.pytorch.utilities.parsing import AttributeDict
+    from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
 __all__ = ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec", "reference_init_"]
 
@@ -320,7 +324,7 @@ def _numpy_scalar_globals() -> list[Any]:
     try:
         from numpy._core.multiarray import scalar
     except ImportError:  # pragma: no cover - NumPy 1
-        from numpy.core.multiarray import scalar
+        from numpy.core.multiarray import scalar  # type: ignore[no-redef]  # NumPy 1's location
     dtypes = getattr(np, "dtypes", None)
     classes = [getattr(dtypes, t) for t in ("Float64DType", "Float32DType", "Int64DType")] if dtypes else []
     return [(scalar, "numpy.core.multiarray.scalar"), (scalar, "numpy._core.multiarray.scalar"), np.dtype, *classes]
@@ -491,7 +495,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
 
         # 4. pretrained backbone weights
         if weights_file is not None:
-            load_torchvision_resnet50(self.encoder.backbone, weights_file)
+            load_torchvision_resnet50(cast(ResNet50Stem, self.encoder.backbone), weights_file)
         self.encoder.backbone.requires_grad_(not freeze_backbone)
 
         # 5. the 3-D layers' weights in the layout of their activations (see lightning_vtr.models.layers): a weight
@@ -572,12 +576,12 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         with torch.autocast(device_type=refined.device.type, enabled=False):
             target = target.float()
             loss = F.binary_cross_entropy(refined.float(), target)
-            if self.hparams.two_stage_loss:
+            if cast("AttributeDict", self.hparams).two_stage_loss:
                 loss = 10 * (F.binary_cross_entropy(outputs["coarse_voxels"].float(), target) + loss)
         return loss
 
-    def configure_optimizers(self) -> dict[str, Any]:
-        hp = self.hparams
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
+        hp = cast("AttributeDict", self.hparams)
         groups = [
             {"params": [p for p in module.parameters() if p.requires_grad], "lr": lr}
             for module, lr in (

@@ -40,7 +40,7 @@ MODELS: dict[str, type[VoxelReconstructionModule]] = {"pix2vox": Pix2VoxPlusPlus
 _LIGHTNING_KEYS = ("state_dict", "pytorch-lightning_version")
 
 
-def model_class(name: str) -> type:
+def model_class(name: str) -> type[Any]:
     """The class a model name stands for: a key of :data:`MODELS` or a dotted class path.
 
     Args:

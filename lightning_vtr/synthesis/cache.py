@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
+from typing import cast
 from urllib.parse import quote
 
 import numpy as np
@@ -210,7 +211,7 @@ class CachedSynthesizer(Synthesizer):
         out = []
         for hits in found:
             if hits:
-                out.append(np.stack(hits, axis=0))
+                out.append(np.stack(cast("list[np.ndarray]", hits), axis=0))  # every miss was filled above
             else:
                 size = self.image_size
                 out.append(np.zeros((0, size, size, 4), dtype=np.uint8))

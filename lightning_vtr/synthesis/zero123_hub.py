@@ -177,7 +177,11 @@ def _snapshot_download(
     from huggingface_hub import snapshot_download
 
     return snapshot_download(
-        repo_id, revision=revision, cache_dir=cache_dir, token=token, allow_patterns=allow_patterns
+        repo_id,
+        revision=revision,
+        cache_dir=None if cache_dir is None else os.fspath(cache_dir),
+        token=token,
+        allow_patterns=allow_patterns,
     )
 
 

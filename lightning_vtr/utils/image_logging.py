@@ -113,7 +113,9 @@ def _send(logger: Logger, tag: str, image: np.ndarray, step: int, trainer: Any) 
         return None
     if not isinstance(logger, CSVLogger):
         experiment = getattr(logger, "experiment", None)
-        if hasattr(experiment, "add_image"):  # a TensorBoard-style writer (e.g. tensorboardX) behind another logger
+        if experiment is not None and hasattr(
+            experiment, "add_image"
+        ):  # a TensorBoard-style writer (e.g. tensorboardX) behind another logger
             experiment.add_image(tag, image, global_step=step, dataformats="HWC")
             return None
         kind = type(logger).__name__

@@ -17,7 +17,7 @@ STALE_SECONDS = 60.0
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | Path, mode: str = "wb", *, fsync: bool = False) -> Iterator[IO]:
+def atomic_open(path: str | os.PathLike, mode: str = "wb", *, fsync: bool = False) -> Iterator[IO]:
     """Open a temporary file beside ``path``; on a clean exit it replaces ``path`` in one step.
 
     The temporary file lives in the destination directory (``os.replace`` is atomic only within one file
@@ -59,7 +59,7 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write(path: str | Path, data: bytes | str, *, fsync: bool = False) -> None:
+def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = False) -> None:
     """Write ``data`` (bytes, or text as UTF-8) to ``path`` atomically (see :func:`atomic_open`)."""
     with atomic_open(path, "wb", fsync=fsync) as f:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
