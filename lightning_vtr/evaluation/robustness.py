@@ -307,7 +307,7 @@ class RobustnessMap:
             for b in range(self.num_bins)
         ]
 
-    def to_csv(self, path: str | Path, *, per_category: bool = True, confidence: float = 0.95) -> Path:
+    def to_csv(self, path: str | Path, *, per_category: bool = False, confidence: float = 0.95) -> Path:
         """Write the map into the directory ``path``; returns the path of ``bins.csv``.
 
         Files:

@@ -216,7 +216,8 @@ def test_csv_round_trips(tmp_path):
     rmap = RobustnessMap.from_iou(
         iou, k=K, object_ids=list("abcd"), categories=["x", "x", "y", "y"], aligned_pitch=30.0, seed=3
     )
-    bins = rmap.to_csv(tmp_path / "out")
+    assert len(read_bins_csv(rmap.to_csv(tmp_path / "plain"))) == N_BINS  # one row per bin
+    bins = rmap.to_csv(tmp_path / "out", per_category=True)
     assert bins.name == "bins.csv"
     rows = read_bins_csv(bins)
     assert len(rows) == 3 * N_BINS  # all, x, y
@@ -252,6 +253,8 @@ def test_plot_writes_a_png_of_the_expected_size(tmp_path):
         png = tmp_path / f"{name}.png"
         assert png.is_file() and f'src="{png.name}"' in html
     assert f"{a.overall():.3f}" in html
+    compared = write_index_html(tmp_path / "ref", {"A": a, "B": b}, reference="A").read_text()
+    assert (tmp_path / "ref" / "B_minus_A.png").is_file() and 'src="B_minus_A.png"' in compared
 
 
 def test_maps_of_a_pair_share_one_colour_scale():
