@@ -17,12 +17,12 @@ import time
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import torch  # noqa: E402
+import torch
 
-from lightning_vtr.data.datamodule import VTRDataModule  # noqa: E402
-from lightning_vtr.evaluation.robustness import robustness_map  # noqa: E402
-from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus  # noqa: E402
-from lightning_vtr.synthesis.render import RenderSynthesizer  # noqa: E402
+from lightning_vtr.data.datamodule import VTRDataModule
+from lightning_vtr.evaluation.robustness import robustness_map
+from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+from lightning_vtr.synthesis.render import RenderSynthesizer
 
 
 class TimedRenderSynthesizer(RenderSynthesizer):
