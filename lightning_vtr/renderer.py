@@ -279,7 +279,7 @@ def _unpremultiply(rgba: np.ndarray) -> np.ndarray:
     if edge[0].size:
         a = alpha[edge].astype(np.float32)[:, None]
         rgb = rgba[edge][:, :3].astype(np.float32)
-        rgba[(*edge, slice(0, 3))] = np.rint(np.clip(rgb * 255.0 / a, 0.0, 255.0)).astype(np.uint8)
+        rgba[..., :3][edge] = np.rint(np.clip(rgb * 255.0 / a, 0.0, 255.0)).astype(np.uint8)
     return rgba
 
 

@@ -286,8 +286,8 @@ def _weights_mismatch(message: str, checkpoint: str) -> str:
             counts.append(f"{found.group(1).count(chr(34)) // 2} {kind.lower()} keys")
     if "size mismatch" in message:
         counts.append(f"{message.count('size mismatch')} shape mismatches")
-    found = ", ".join(counts) or "weights that do not fit"
+    mismatch = ", ".join(counts) or "weights that do not fit"
     return (
-        f"`--ckpt_path` must be a checkpoint of the configured model ({model}), got {checkpoint!r}: {found} "
+        f"`--ckpt_path` must be a checkpoint of the configured model ({model}), got {checkpoint!r}: {mismatch} "
         "(a checkpoint of the other model class or of another preset?)"
     )

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 from PIL import Image
@@ -131,6 +131,33 @@ def _project(
     return -camera[:, 1] / z, camera[:, 0] / z
 
 
+@overload
+def frame_check(
+    record: Pix3DRecord,
+    *,
+    voxel_to_model: np.ndarray = ...,
+    grid: int = ...,
+    size: int = ...,
+    return_silhouettes: Literal[False] = ...,
+) -> float: ...
+@overload
+def frame_check(
+    record: Pix3DRecord,
+    *,
+    voxel_to_model: np.ndarray = ...,
+    grid: int = ...,
+    size: int = ...,
+    return_silhouettes: Literal[True],
+) -> tuple[float, np.ndarray, np.ndarray]: ...
+@overload
+def frame_check(
+    record: Pix3DRecord,
+    *,
+    voxel_to_model: np.ndarray = ...,
+    grid: int = ...,
+    size: int = ...,
+    return_silhouettes: bool = ...,
+) -> float | tuple[float, np.ndarray, np.ndarray]: ...
 def frame_check(
     record: Pix3DRecord,
     *,
@@ -192,7 +219,7 @@ def frame_check_summary(ious: Mapping[str, float]) -> str:
     """One line: count, mean and minimum of frame-check IoUs, and the worst record."""
     if not ious:
         return "frame check: no records"
-    worst = min(ious, key=ious.get)
+    worst = min(ious, key=lambda key: ious[key])
     values = np.fromiter(ious.values(), float)
     return f"frame check on {len(values)} record(s): mean IoU {values.mean():.3f}, min {values.min():.3f} ({worst})"
 

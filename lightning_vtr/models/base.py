@@ -199,7 +199,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
                 return True
             return {k for k in hparams if not str(k).startswith("_")} <= {p.name for p in params}
 
-        def subclasses(base: type) -> list[type]:
+        def subclasses(base: type[object]) -> list[type]:
             found: list[type] = []
             for sub in base.__subclasses__():
                 found += [sub, *subclasses(sub)]

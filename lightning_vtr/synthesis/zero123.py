@@ -18,7 +18,7 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 import torch
@@ -50,7 +50,10 @@ from lightning_vtr.utils.compositing import alpha_composite
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 if TYPE_CHECKING:  # pragma: no cover
-    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    # the defining modules: mypy reads `from diffusers import ...` as diffusers' dummy (no-torch) classes
+    from diffusers.models.autoencoders.autoencoder_kl import AutoencoderKL
+    from diffusers.models.unets.unet_2d_condition import UNet2DConditionModel
+    from diffusers.schedulers.scheduling_ddim import DDIMScheduler
     from transformers import CLIPVisionModelWithProjection
 
 __all__ = ["CLIP_MEAN", "CLIP_STD", "Zero123CheckpointError", "Zero123Synthesizer"]
@@ -170,7 +173,7 @@ class Zero123Synthesizer(Synthesizer):
         dtype: torch.dtype | None = None,
         weights_id: str | None = None,
     ) -> None:
-        from diffusers import DDIMScheduler
+        from diffusers.schedulers.scheduling_ddim import DDIMScheduler  # (its defining module: see the top)
 
         if scheduler is None:
             scheduler = DDIMScheduler(**REFERENCE_DDIM)
@@ -183,9 +186,9 @@ class Zero123Synthesizer(Synthesizer):
             check_int(name, value, minimum=1)
         check_float("foreground_ratio", foreground_ratio, minimum=0.0, maximum=1.0, min_open=True)
         check_float("background_threshold", background_threshold, minimum=0.0, maximum=1.0, min_open=True)
-        for name, value in (("image_mean", image_mean), ("image_std", image_std)):
-            if len(value) != 3:
-                raise ValueError(f"`{name}` must have 3 entries (RGB), got {value!r}")
+        for name, entries in (("image_mean", image_mean), ("image_std", image_std)):
+            if len(entries) != 3:
+                raise ValueError(f"`{name}` must have 3 entries (RGB), got {entries!r}")
 
         self.unet, self.vae, self.image_encoder, self.projection, self.scheduler = (
             unet,
@@ -209,8 +212,8 @@ class Zero123Synthesizer(Synthesizer):
         self.image_mean = tuple(float(m) for m in image_mean)
         self.image_std = tuple(float(s) for s in image_std)
         self.clip_size = clip_size
-        self.vae_scale_factor = 2 ** (len(vae.config.block_out_channels) - 1)
-        sample_size = unet.config.sample_size
+        self.vae_scale_factor = 2 ** (len(vae.config.block_out_channels) - 1)  # type: ignore[attr-defined]  # diffusers' FrozenDict config has attributes
+        sample_size = unet.config.sample_size  # type: ignore[attr-defined]  # diffusers' FrozenDict config has attributes
         sample_size = sample_size[0] if isinstance(sample_size, (tuple, list)) else sample_size
         #: side of the model's input and output images in pixels
         self.resolution = int(sample_size) * self.vae_scale_factor
@@ -383,7 +386,7 @@ class Zero123Synthesizer(Synthesizer):
             loaded["vae"],
             loaded["image_encoder"],
             loaded["projection"],
-            pose_embedding=pose,
+            pose_embedding=cast(Literal["zero123", "stable"], pose),  # checked above
             device=device,
             dtype=dtype,
             **kwargs,
@@ -599,8 +602,8 @@ class Zero123Synthesizer(Synthesizer):
         self._place()
 
         # 2. preprocess: centre the object, composite on white, resize to the model resolution
-        pixels, sides = zip(*(self.preprocess(image) for image in images))
-        pixels = torch.stack(pixels)  # (N, 3, R, R) in [0, 1]
+        pixel_list, sides = zip(*(self.preprocess(image) for image in images))
+        pixels = torch.stack(pixel_list)  # (N, 3, R, R) in [0, 1]
 
         # 3. relative pose of each pair (radians)
         pose = relative_pose(source.double(), target.double(), self.pose_embedding).float()  # (N, 4)
@@ -703,7 +706,7 @@ class Zero123Synthesizer(Synthesizer):
         #    or on which other pairs share the batch
         generators = [torch.Generator().manual_seed(int(s)) for s in seeds]
         side = self.resolution // self.vae_scale_factor
-        shape = (self.unet.config.out_channels, side, side)
+        shape = (self.unet.config.out_channels, side, side)  # type: ignore[attr-defined]  # diffusers' FrozenDict config has attributes
 
         def noise() -> Tensor:
             return torch.stack([torch.randn(shape, generator=g) for g in generators]).to(device=device, dtype=dtype)
@@ -720,10 +723,11 @@ class Zero123Synthesizer(Synthesizer):
                 uncond, cond = noise_pred.chunk(2)
                 noise_pred = uncond + guidance * (cond - uncond)
             variance_noise = noise() if eta > 0 else None
-            latents = self.scheduler.step(noise_pred, t, latents, eta=eta, variance_noise=variance_noise).prev_sample
+            step = self.scheduler.step(noise_pred, t, latents, eta=eta, variance_noise=variance_noise)
+            latents = step.prev_sample  # type: ignore[union-attr]  # return_dict=True (the default): an output object
 
         # d. decode
-        decoded = self.vae.decode(latents / self.vae.config.scaling_factor).sample
+        decoded = self.vae.decode(latents / self.vae.config.scaling_factor).sample  # type: ignore[attr-defined]  # diffusers' FrozenDict config has attributes
         return ((decoded.float() + 1.0) / 2.0).clamp(0.0, 1.0).cpu()
 
     # ------------------------------------------------------------------ Synthesizer interface

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
@@ -79,7 +79,11 @@ def alpha_composite(rgba: ArrayOrTensor, background: Any = None, *, channels_fir
     out = rgb * alpha + bg * (1.0 - alpha)
     if not integer:
         return out
-    return torch.round(out).to(torch.uint8) if isinstance(out, torch.Tensor) else np.rint(out).astype(np.uint8)
+    # (the cast: checking the numpy case, mypy also follows the isinstance-Tensor branch of `x` above)
+    return cast(
+        ArrayOrTensor,
+        torch.round(out).to(torch.uint8) if isinstance(out, torch.Tensor) else np.rint(out).astype(np.uint8),
+    )
 
 
 def _as_background(background: Any, rgb: ArrayOrTensor, axis: int, channels_first: bool) -> ArrayOrTensor:
