@@ -343,10 +343,10 @@ class RobustnessMap:
             for row in rows:
                 writer.writerow({key: repr(v) if isinstance(v, float) else v for key, v in row.items()})
         with open(out / OBJECTS_FILE, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(["category", "object_id", *[f"bin_{b}" for b in range(self.num_bins)]])
+            table = csv.writer(f)
+            table.writerow(["category", "object_id", *[f"bin_{b}" for b in range(self.num_bins)]])
             for category, object_id, values in zip(self.categories, self.object_ids, self.iou):
-                writer.writerow([category, object_id, *[repr(float(v)) for v in values]])
+                table.writerow([category, object_id, *[repr(float(v)) for v in values]])
         meta = {
             "k": self.k,
             "threshold": self.threshold,

@@ -113,8 +113,8 @@ def selection_scores(
         preds = []
         with torch.inference_mode():
             for lo in range(0, len(images), batch_size):
-                out = model.predict_voxels(torch.stack(images[lo : lo + batch_size]).to(device))
-                preds.append(check_probabilities("predict_voxels", out.detach().float().cpu()))
+                batch = model.predict_voxels(torch.stack(images[lo : lo + batch_size]).to(device))
+                preds.append(check_probabilities("predict_voxels", batch.detach().float().cpu()))
         predicted = torch.cat(preds)
         target = torch.stack([torch.as_tensor(load_target(r)).float() for r in records])
         context = None
@@ -148,7 +148,8 @@ def selection_scores(
             )
         out: dict[str, np.ndarray] = {}
         for name in scores:
-            selector = ErrorGuidedSelector(k=k, score=name, threshold=threshold, model_batch_size=batch_size)
+            score: Any = name  # one of SCORES, checked above
+            selector = ErrorGuidedSelector(k=k, score=score, threshold=threshold, model_batch_size=batch_size)
             out[name] = selector.score_views(predicted, target, context if name == "input" else None).double().numpy()
     finally:
         if hasattr(model, "train"):

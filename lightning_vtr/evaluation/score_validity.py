@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -251,7 +252,7 @@ def validity_rows(
     n: int = 3,
     fraction: float = 0.1,
     confidence: float = 0.95,
-) -> list[dict[str, object]]:
+) -> list[dict[str, Any]]:
     """One row per score: mean Spearman correlation and top-``n`` hit rates (object and category truth), with chance.
 
     Args:
@@ -285,7 +286,7 @@ def validity_rows(
     return rows
 
 
-def format_validity_table(rows: Sequence[Mapping[str, object]], *, n: int = 3, fraction: float = 0.1) -> str:
+def format_validity_table(rows: Sequence[Mapping[str, Any]], *, n: int = 3, fraction: float = 0.1) -> str:
     """The rows of :func:`validity_rows` as a Markdown table (means with 95 % intervals in brackets).
 
     Example::
