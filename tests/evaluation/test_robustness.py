@@ -27,8 +27,8 @@ N_BINS = (180 // K) * (360 // K)
 
 
 @pytest.fixture(scope="module")
-def objects(tmp_path_factory):
-    """Three procedural objects (2 chairs, 1 table... whatever the split gives) with meshes, 32-px images."""
+def dataset_root(tmp_path_factory):
+    """A dataset of 2 procedural chairs and 2 tables, all in the train split, with meshes and 32-px images."""
     from lightning_vtr.data.builder import build_dataset
 
     root = tmp_path_factory.mktemp("robustness_vtr")
@@ -45,7 +45,13 @@ def objects(tmp_path_factory):
         workers=1,
         progress=False,
     )
-    return scan_dataset(root)[:3]
+    return root
+
+
+@pytest.fixture(scope="module")
+def objects(dataset_root):
+    """Three of its objects (two chairs, one table)."""
+    return scan_dataset(dataset_root)[:3]
 
 
 class ImageMeanModel(nn.Module):
@@ -322,3 +328,18 @@ class CoarseModel(ImageMeanModel):
 def test_a_model_output_of_the_wrong_grid_is_refused(objects):
     with pytest.raises(ValueError, match=r"got \(8, 16, 16, 16\)"):
         robustness_map(CoarseModel(), objects[:1], k=90, progress=False, synthesizer=RenderSynthesizer(image_size=32))
+
+
+def test_a_datamodule_serves_its_split_and_transform(dataset_root, objects):
+    from lightning_vtr.data.datamodule import VTRDataModule
+
+    dm = VTRDataModule(str(dataset_root), image_size=32, num_views=3)
+    model = ImageMeanModel()
+    kw = dict(k=90, progress=False, synthesizer=RenderSynthesizer(image_size=32))
+    from_dm = robustness_map(model, dm, split="train", **kw)
+    records = dm.split_records("train")
+    assert from_dm.object_ids == [r.object_id for r in records] and from_dm.num_objects == 4
+    from_records = robustness_map(model, records, transform=dm.transform, **kw)
+    np.testing.assert_array_equal(from_dm.iou, from_records.iou)
+    with pytest.raises(ValueError, match="at least one object"):
+        robustness_map(model, dm, split="test", **kw)  # the split is empty
