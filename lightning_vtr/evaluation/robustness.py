@@ -463,7 +463,8 @@ def robustness_map(
     views whatever else is measured with it). ``objects_per_call`` objects at a time are rendered in one
     ``synthesizer.synthesize`` call (every view of every set), transformed, and predicted from in batches of
     ``batch_size`` sets under :func:`torch.inference_mode` with the model in eval mode (its mode is restored
-    afterwards), in a worker thread while the next objects render (``overlap``); each prediction's IoU at ``threshold`` against the object's voxels is averaged over its bin's sets.
+    afterwards), in a worker thread while the next objects render (``overlap``); each prediction's IoU at
+    ``threshold`` against the object's voxels is averaged over its bin's sets.
 
     Args:
         model: a :class:`~lightning_vtr.protocol.ReconstructionModel` (``predict_voxels``, ``image_size``,
