@@ -146,7 +146,7 @@ def voxel_mesh(occupancy: Any, colors: np.ndarray | None = None) -> trimesh.Trim
     quad = np.concatenate(quads)
     vertices = quad.reshape(-1, 3) / r - 0.5
     base = np.arange(len(quad))[:, None] * 4
-    faces = np.concatenate([[*base, 0, 1, 2], [*base, 0, 2, 3]], axis=1).reshape(-1, 3)
+    faces = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])], axis=1).reshape(-1, 3)
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     if colors is not None:
         rgb = np.repeat(np.concatenate(face_colors), 2, axis=0).astype(np.uint8)  # two triangles per quad
