@@ -1,5 +1,8 @@
 r"""Error-guided view augmentation: at each training epoch's end, find the views a model is weakest at,
 synthesize them and train on them next epoch.
+
+One module, past 600 lines, because the callback's hooks, its selection step, its synthesis step and its
+saved state act on one object; the selectors, synthesizers and datamodule it drives live elsewhere.
 """
 
 from __future__ import annotations
@@ -27,9 +30,15 @@ from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities, check_type
 
-__all__ = ["RECORD_VERSION", "ErrorGuidedViewAugmentation"]
+__all__ = ["DEFAULT_SEARCH_FRACTION", "DEFAULT_SELECTOR_KWARGS", "RECORD_VERSION", "ErrorGuidedViewAugmentation"]
 
 _STATE_VERSION = 1
+#: Arguments of the default selector, ``ErrorGuidedSelector(**DEFAULT_SELECTOR_KWARGS)``: the side-aware
+#: ``visible`` score, bins within 30 degrees of a chosen one (or its antipode) suppressed, bins sampled by
+#: solid angle x score at temperature 10 (the report's ``visible_tau10_search`` row).
+DEFAULT_SELECTOR_KWARGS: dict[str, Any] = {"score": "visible", "min_separation": 30.0, "temperature": 10.0}
+#: ``search_fraction`` with the default selector: the released code's search, 35 % of the training objects.
+DEFAULT_SEARCH_FRACTION = 0.35
 #: The ``version`` of the per-selection records (``<log dir>/vtr_selection/*.json``).
 RECORD_VERSION = 1
 _NOTHING_GENERATED = -2
@@ -106,8 +115,9 @@ class ErrorGuidedViewAugmentation(L.Callback):
 
     1. draws a seeded random ``search_fraction`` of the training objects (at least ``min_objects``),
     2. predicts their voxels from their Aligned views (eval mode, no gradients),
-    3. asks ``selector`` for new viewpoints (error-guided by default: the views whose orthographic
-       projection of the error volume :math:`E = |V - V^{gt}|` is largest),
+    3. asks ``selector`` for new viewpoints (error-guided by default: bins of the viewing sphere sampled by
+       solid angle x how much of the error volume :math:`E = |V - V^{gt}|` a camera there would see, tempered,
+       away from each other; :meth:`paper` takes the paper's hard top bins of the orthographic projection),
     4. picks ``fraction`` of the training objects among the searched ones to get new views (``generate_for``),
        and with a pool (the error-guided default) stores every searched object's selection per category
        and draws each picked object's view set from its category's pool, by default one found on another
@@ -160,13 +170,20 @@ class ErrorGuidedViewAugmentation(L.Callback):
     caught up when training resumes.
 
     Args:
-        selector: a :class:`~lightning_vtr.selection.base.ViewSelector`, or the name of one in
+        selector: a :class:`~lightning_vtr.selection.base.ViewSelector`; the name of one in
             :data:`lightning_vtr.selection.SELECTORS` (``"error_guided"``, ``"random"``, ``"nature"``,
-            ``"viat"``, ``"mvtn"``), built with its defaults; default ``ErrorGuidedSelector()`` (K = 30, 3 views).
+            ``"viat"``, ``"mvtn"``), built with its defaults (``"error_guided"``: ``ErrorGuidedSelector()``,
+            whose defaults are the paper's score); or ``"paper"``, the paper's exact rule (:meth:`paper`).
+            Default (``None``): the tempered side-aware rule, ``ErrorGuidedSelector(score="visible",
+            min_separation=30.0, temperature=10.0)`` (K = 30, 3 views), searching 35 % of the objects into a
+            pool rebuilt at every selection (see ``search_fraction`` and ``pool_refresh``), the best
+            error-guided rule measured (``docs/results.md``, "The default rule").
         synthesizer: a :class:`~lightning_vtr.synthesis.base.Synthesizer`; default ``RenderSynthesizer()``.
         fraction: share of training objects given new views per selection (the paper's random update
             strategy: 5 %).
-        search_fraction: share of training objects scored per selection (``None``: ``fraction``). Scoring
+        search_fraction: share of training objects scored per selection; ``None``: 0.35 with the default
+            selector (``selector=None``; ``fraction`` if larger), ``fraction`` with a selector given or named
+            (the paper's). Scoring
             is cheap next to synthesis, so searching more objects than get new views fills the pool with the
             current model's weak views (the released code searches far more than it generates for).
         generate_for: which searched objects get the new views when ``search_fraction > fraction``:
@@ -178,7 +195,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
             selector's ``uses_pool`` (True for error-guided, False for Random/Nature).
         pool_capacity: view sets kept per category in the pool (``None``: all).
         pool_refresh: empty the pool before each selection, so it holds only what the current model gets
-            wrong (the released code rebuilds it every epoch); ``False`` keeps every earlier selection.
+            wrong (the released code rebuilds it every epoch); ``False`` keeps every earlier selection (the
+            paper's). ``None``: ``True`` with the default selector, ``False`` with a selector given or named.
         pool_prefer_others: draw a view set found on *another* object of the category when there is one
             (the paper's transferability argument); ``False`` draws among all, the object's own included.
         select_at_start: run the first selection and generation in ``on_train_start``, before epoch 0 trains,
@@ -213,6 +231,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         trainer.fit(Pix2VoxPlusPlus(preset="tiny"), datamodule=VTRDataModule(image_size=64))
 
         # or by registry name, as a YAML config would: ErrorGuidedViewAugmentation(selector="random")
+        # the paper's exact rule: ErrorGuidedViewAugmentation.paper(), or selector="paper"
     """
 
     def __init__(
@@ -226,7 +245,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         min_objects: int = 1,
         use_pool: bool | None = None,
         pool_capacity: int | None = None,
-        pool_refresh: bool = False,
+        pool_refresh: bool | None = None,
         pool_prefer_others: bool = True,
         select_at_start: bool = True,
         max_samples: int | None = None,
@@ -237,11 +256,14 @@ class ErrorGuidedViewAugmentation(L.Callback):
         progress_bar: bool = True,
     ) -> None:
         fraction = check_float("fraction", fraction, minimum=0.0, maximum=1.0, min_open=True)
+        # the default selector comes with the settings it was measured with; a selector given or named keeps
+        # the paper's (search as many objects as get views, keep every selection in the pool)
+        default_rule = selector is None
         if search_fraction is None:
-            search_fraction = fraction
+            search_fraction = max(DEFAULT_SEARCH_FRACTION, fraction) if default_rule else fraction
         search_fraction = check_float("search_fraction", search_fraction, minimum=fraction, maximum=1.0)
         generate_for = check_choice("generate_for", generate_for, ("random", "error"))
-        pool_refresh = check_type("pool_refresh", pool_refresh, bool)
+        pool_refresh = default_rule if pool_refresh is None else check_type("pool_refresh", pool_refresh, bool)
         pool_prefer_others = check_type("pool_prefer_others", pool_prefer_others, bool)
         select_at_start = check_type("select_at_start", select_at_start, bool)
         min_objects = check_int("min_objects", min_objects, minimum=1)
@@ -255,13 +277,13 @@ class ErrorGuidedViewAugmentation(L.Callback):
         if isinstance(selector, str):
             # a registry name, as YAML configs and the CLI give it; imported here so that importing the
             # callback does not import every selector
-            from lightning_vtr.selection.registry import SELECTORS, make_selector
+            from lightning_vtr.selection.registry import SELECTOR_PRESETS, SELECTORS, make_selector
 
-            selector = make_selector(check_choice("selector", selector, SELECTORS))
+            selector = make_selector(check_choice("selector", selector, [*SELECTORS, *SELECTOR_PRESETS]))
         elif selector is None:
             from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 
-            selector = ErrorGuidedSelector()
+            selector = ErrorGuidedSelector(**DEFAULT_SELECTOR_KWARGS)
         else:
             check_type("selector", selector, ViewSelector, "lightning_vtr ViewSelector or a registry name")
         if synthesizer is None:
@@ -295,6 +317,31 @@ class ErrorGuidedViewAugmentation(L.Callback):
         # Last epoch whose samples were generated: -1 is the selection before epoch 0, -2 none yet.
         self.last_epoch = _NOTHING_GENERATED
         self.history: list[dict[str, Any]] = []
+
+    @classmethod
+    def paper(cls, **kwargs: Any) -> ErrorGuidedViewAugmentation:
+        """The paper's exact rule: ``cls(selector="paper", **kwargs)``.
+
+        The selector is ``"paper"`` of :data:`~lightning_vtr.selection.registry.SELECTOR_PRESETS` (binary error summed over the first-hit map of the orthographic error projection, the hard top 3 of the
+        30-degree bins, no suppression); the callback searches as many objects as it gives views
+        (``search_fraction = fraction``) and keeps every selection in a per-category pool that prefers other
+        objects' view sets (``pool_refresh=False``, ``pool_prefer_others=True``), the first selection made
+        from the model the fit starts with (``select_at_start=True``). The report's ``paper`` row.
+
+        Args:
+            kwargs: any other argument of the callback (``fraction``, ``synthesizer``, ``seed``, ...); they
+                override these settings, the selector excepted.
+
+        Raises:
+            TypeError: ``kwargs`` give a ``selector``.
+
+        Example::
+
+            callback = ErrorGuidedViewAugmentation.paper(fraction=0.05, seed=0)
+        """
+        if "selector" in kwargs:
+            raise TypeError("ErrorGuidedViewAugmentation.paper() takes no `selector`: it is the paper's")
+        return cls(selector="paper", **kwargs)
 
     @property
     def state_key(self) -> str:

@@ -36,6 +36,9 @@ written by whichever pass finds every object finished (built or failed): the las
 plain re-run, or :func:`finalize_dataset` (``lightning-vtr build-dataset ROOT --finalize``).
 ``build_config.json`` records the options that shape the content; a re-run or another shard with
 different ones is refused, so one dataset never mixes image sizes or view sets.
+
+One module, past 600 lines, because planning, the worker processes, resuming and finalizing a build share
+its task and manifest types.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ PIX3D_PITCH_RANGE: tuple[float, float] = (0.0, 40.0)
 _PNG_COMPRESS_LEVEL = 1
 
 #: The embedded dataset's build options: 10 categories x 24 objects (17 / 2 / 5 per split) at 96 px, sized so
-#: the examples build it and train twice within their time budgets on 2 CPU cores (README has the figures).
+#: the examples build it and train twice on a laptop CPU.
 EMBEDDED_DEFAULTS: dict[str, Any] = dict(
     categories=["airplane", "bed", "bench", "car", "chair", "lamp", "monitor", "sofa", "table", "vessel"],
     objects_per_category=24,

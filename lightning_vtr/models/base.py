@@ -84,7 +84,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         iou_thresholds: thresholds of the logged IoU.
         fscore_threshold: binarisation threshold of the F-score.
         fscore_points: points sampled per surface for the F-score.
-        validation_fscore: also compute the F-score during validation (costs ~10-50 ms per object).
+        validation_fscore: also compute the F-score during validation (it samples surface points per object).
         categories: category vocabulary for per-category test metrics; ``None`` takes
             ``trainer.datamodule.categories`` at setup when it exists, else grows as names are seen
             (fine on one process; under DDP give it explicitly).

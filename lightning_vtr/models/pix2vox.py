@@ -88,7 +88,7 @@ class Pix2VoxSpec:
 
 #: The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
 #: ``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
-#: initialisation and ``BCE(refined)``, as in 0.1, so that its training runs and figures stay comparable.
+#: initialisation and ``BCE(refined)``.
 PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
     "paper": Pix2VoxSpec(
         image_size=224,
@@ -392,7 +392,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
             Not read by :meth:`load_from_checkpoint`, whose state dict holds the weights.
         freeze_backbone: keep the ResNet-50 (or the tiny preset's small backbone) fixed. Pix2Vox++
             trains it, so the default is ``False``. ``None`` (deprecated) freezes it exactly when
-            ``backbone_weights`` is given, the default before 0.2.
+            ``backbone_weights`` is given.
         init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s,
             see :func:`reference_init_`), ``"torch"`` (PyTorch's defaults) or ``None``: the preset's
             (``paper``: ``"reference"``, ``tiny``: ``"torch"``).

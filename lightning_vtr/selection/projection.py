@@ -29,6 +29,9 @@ from, and a voxel is skipped for a group's views when occupied voxels of its 2x2
 octant hide it in every one of them (the table keeps, per voxel and group, a smallest set of block voxels
 that does: one falls in the same pixel with a smaller rank in each view). That changes no first hit, and on
 the benchmark's objects keeps about a sixth of a surface's (voxel, view) pairs.
+
+One module, past 600 lines, because the projection table and the score functions over it share the table's
+layout, which stays private to it.
 """
 
 from __future__ import annotations
