@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from lightning_vtr.evaluation.robustness import RobustnessMap
+from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_int
 
 __all__ = ["plot_difference", "plot_map", "write_index_html"]
@@ -188,7 +189,12 @@ def _file_stem(name: str) -> str:
 
 
 def write_index_html(
-    out: str | Path, maps: Mapping[str, RobustnessMap], *, reference: str | None = None, title: str = "Robustness maps"
+    out: str | Path,
+    maps: Mapping[str, RobustnessMap],
+    *,
+    reference: str | None = None,
+    title: str = "Robustness maps",
+    sections: Mapping[str, str] | None = None,
 ) -> Path:
     """Write one PNG per map (one shared colour scale) and an ``index.html`` showing them with a small table.
 
@@ -200,9 +206,10 @@ def write_index_html(
         maps: name -> map; the names title the pictures and name the files (``<name>.png``).
         reference: the name of the map the others are compared with (``None``: no difference maps).
         title: the page title.
+        sections: heading -> preformatted text (a Markdown table, say) shown below the pictures, in order.
 
     Returns:
-        The path of ``index.html``.
+        The path of ``index.html``, written last and atomically (a page that is there is whole).
 
     Raises:
         ValueError: no maps.
@@ -240,6 +247,9 @@ def write_index_html(
                 title=f"{name} - {reference}",
             )
             figures.append(f'<figure><img src="{html.escape(diff.name)}" alt="{html.escape(diff.stem)}"></figure>')
+    extra = [
+        f"<h2>{html.escape(heading)}</h2>\n<pre>{html.escape(text)}</pre>" for heading, text in (sections or {}).items()
+    ]
     first = next(iter(maps.values()))
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
@@ -253,8 +263,9 @@ equal-area (yaw against sin pitch); the dashed line is the Aligned elevation. Al
 {chr(10).join(rows)}
 </table>
 {chr(10).join(figures)}
+{chr(10).join(extra)}
 </body></html>
 """
     index = directory / "index.html"
-    index.write_text(page, encoding="utf-8")
+    atomic_write(index, page)
     return index
