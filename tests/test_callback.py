@@ -63,7 +63,7 @@ def test_init_messages_name_the_argument_and_value():
         ErrorGuidedViewAugmentation(fraction=1.5)
     with pytest.raises(ValueError, match=re.escape("`pool_capacity` must be an int >= 1, got 0")):
         ErrorGuidedViewAugmentation(pool_capacity=0)
-    names = ", ".join(repr(name) for name in SELECTORS)
+    names = ", ".join(repr(name) for name in [*SELECTORS, "paper"])
     with pytest.raises(ValueError, match=re.escape(f"`selector` must be one of {names}, got 'error'")):
         ErrorGuidedViewAugmentation(selector="error")
 
@@ -74,7 +74,81 @@ def test_selector_by_registry_name(name):
     callback = ErrorGuidedViewAugmentation(selector=name, progress_bar=False)
     assert type(callback.selector) is SELECTORS[name]
     assert (callback.pool is not None) == SELECTORS[name].uses_pool == (name == "error_guided")
-    assert type(ErrorGuidedViewAugmentation().selector) is ErrorGuidedSelector  # the default is unchanged
+    # a selector named gets the paper's callback settings: search as many as get views, keep every selection
+    assert (callback.search_fraction, callback.pool_refresh) == (0.05, False)
+
+
+def _settings(callback: ErrorGuidedViewAugmentation) -> dict:
+    """The selection settings of a callback: its selector's and its own."""
+    selector = callback.selector
+    pool = callback.pool
+    return {
+        "selector": type(selector).__name__,
+        "score": getattr(selector, "score", None),
+        "min_separation": getattr(selector, "min_separation", None),
+        "temperature": getattr(selector, "temperature", None),
+        "k": getattr(selector, "k", None),
+        "num_views": selector.num_views,
+        "fraction": callback.fraction,
+        "search_fraction": callback.search_fraction,
+        "pool_refresh": callback.pool_refresh,
+        "use_pool": callback.use_pool,
+        "pool_capacity": None if pool is None else pool.capacity,
+        "pool_prefer_others": None if pool is None else pool.prefer_others,
+        "select_at_start": callback.select_at_start,
+    }
+
+
+PAPER = {
+    "selector": "ErrorGuidedSelector",
+    "score": "paper",
+    "min_separation": None,
+    "temperature": None,
+    "k": 30,
+    "num_views": 3,
+    "fraction": 0.05,
+    "search_fraction": 0.05,
+    "pool_refresh": False,
+    "use_pool": True,
+    "pool_capacity": None,
+    "pool_prefer_others": True,
+    "select_at_start": True,
+}
+
+
+def test_the_default_is_the_tempered_side_aware_rule_with_the_released_search():
+    assert _settings(ErrorGuidedViewAugmentation()) == {
+        **PAPER,
+        "score": "visible",
+        "min_separation": 30.0,
+        "temperature": 10.0,
+        "search_fraction": 0.35,
+        "pool_refresh": True,
+    }
+    # each setting can still be turned off; the search is never below the share given views
+    off = ErrorGuidedViewAugmentation(search_fraction=0.05, pool_refresh=False)
+    assert (off.search_fraction, off.pool_refresh, off.selector.temperature) == (0.05, False, 10.0)
+    assert ErrorGuidedViewAugmentation(fraction=0.5).search_fraction == 0.5
+
+
+def test_the_papers_rule_is_one_argument_away():
+    assert _settings(ErrorGuidedViewAugmentation.paper()) == PAPER
+    assert _settings(ErrorGuidedViewAugmentation(selector="paper")) == PAPER
+    # what the default was before it became the tempered rule
+    assert _settings(ErrorGuidedViewAugmentation(selector=ErrorGuidedSelector())) == PAPER
+    tuned = ErrorGuidedViewAugmentation.paper(fraction=0.1, seed=3, pool_capacity=5)
+    assert _settings(tuned) == {**PAPER, "fraction": 0.1, "search_fraction": 0.1, "pool_capacity": 5}
+    assert tuned.seed == 3
+    with pytest.raises(TypeError, match="takes no `selector`"):
+        ErrorGuidedViewAugmentation.paper(selector="random")
+
+
+def test_a_selector_given_gets_the_papers_callback_settings():
+    # the default's search and refresh come with the default selector only
+    given = ErrorGuidedViewAugmentation(ErrorGuidedSelector(score="visible", min_separation=30.0, temperature=10.0))
+    assert (given.search_fraction, given.pool_refresh) == (0.05, False)
+    random = ErrorGuidedViewAugmentation(RandomSelector(mode="area"), fraction=0.1)
+    assert (random.search_fraction, random.pool_refresh, random.pool) == (0.1, False, None)
 
 
 def test_setup_refuses_without_dataloader_reload(tiny_dataset, tmp_path):
@@ -114,11 +188,12 @@ class TrainSetSizeProbe(L.Callback):
 
 @pytest.fixture(scope="module")
 def pool_run(tiny_dataset, tmp_path_factory):
-    """One 3-epoch fit of EmptyPredictionModel with the default callback (error-guided, pool, 20 %, a selection
-    before epoch 0), fitted once for the tests that read it: ``(datamodule, callback, run dir, train set sizes)``."""
+    """One 3-epoch fit of EmptyPredictionModel with the paper's rule (error-guided, a pool keeping every selection,
+    20 %, a selection before epoch 0), fitted once for the tests that read it: ``(datamodule, callback, run dir,
+    train set sizes)``."""
     root = tmp_path_factory.mktemp("pool_run")
     dm = make_datamodule(tiny_dataset, root)
-    callback = make_callback(fraction=0.2)
+    callback = make_callback(selector="paper", fraction=0.2)
     probe = TrainSetSizeProbe()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny tensors; the selection of an empty prediction does not depend on it
@@ -285,7 +360,7 @@ def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, re
     else:
         dm = make_datamodule(tiny_dataset, tmp_path)
         probe = TrainSetSizeProbe()
-        callback = make_callback(fraction=0.2, select_at_start=select_at_start)
+        callback = make_callback(selector="paper", fraction=0.2, select_at_start=select_at_start)
         make_trainer(tmp_path, 3, [callback, probe]).fit(EmptyPredictionModel(), datamodule=dm)
         sizes = probe.sizes
     assert sizes == expected
@@ -293,7 +368,9 @@ def test_the_first_selection_is_trained_on_in_epoch_0(tiny_dataset, tmp_path, re
 
 def test_search_more_objects_than_get_views(tiny_dataset, tmp_path):
     dm = make_datamodule(tiny_dataset, tmp_path)
-    callback = make_callback(fraction=0.1, search_fraction=0.5, generate_for="error", select_at_start=True)
+    callback = make_callback(
+        selector="paper", fraction=0.1, search_fraction=0.5, generate_for="error", select_at_start=True
+    )
     make_trainer(tmp_path, 1, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     record = json.loads((Path(tmp_path) / "vtr_selection" / "start.json").read_text())
     # round(0.5 * 21) = 10 objects searched, all in the pool; round(0.1 * 21) = 2 get new views
@@ -311,7 +388,7 @@ def _pool_keys(callback) -> list[str]:
 
 def test_pool_refresh_keeps_only_the_latest_selection(tiny_dataset, tmp_path):
     dm = make_datamodule(tiny_dataset, tmp_path)
-    callback = make_callback(fraction=0.2, pool_refresh=True)
+    callback = make_callback(selector="paper", fraction=0.2, pool_refresh=True)
     make_trainer(tmp_path, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     assert len(dm.generated_samples) == 12  # three selections of 4
     assert len(callback.pool) == 4  # only the last selection's sets

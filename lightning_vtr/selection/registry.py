@@ -12,7 +12,7 @@ from lightning_vtr.selection.random_selector import RandomSelector
 from lightning_vtr.selection.viat import VIATSelector
 from lightning_vtr.utils.validation import check_choice
 
-__all__ = ["SELECTORS", "make_selector"]
+__all__ = ["SELECTORS", "SELECTOR_PRESETS", "make_selector"]
 
 #: Strategy name -> selector class, in the row order of the paper's Table 1 ("none", no augmentation,
 #: is the harness's baseline and has no selector).
@@ -24,11 +24,34 @@ SELECTORS: dict[str, type[ViewSelector]] = {
     "error_guided": ErrorGuidedSelector,
 }
 
+#: Named settings of a selector: name -> (a name in :data:`SELECTORS`, its arguments). ``"paper"`` is the
+#: paper's exact rule: binary error summed over the first-hit map, the hard top n bins, no suppression of
+#: neighbouring bins (equal to ``ErrorGuidedSelector()``, spelled out so it stays the paper's whatever the
+#: selector's defaults). ``ErrorGuidedViewAugmentation(selector="paper")`` pairs it with the paper's callback
+#: settings (see :meth:`~lightning_vtr.callback.ErrorGuidedViewAugmentation.paper`).
+SELECTOR_PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("error_guided", {"score": "paper", "min_separation": None, "temperature": None}),
+}
+
 
 def make_selector(name: str, **kwargs: Any) -> ViewSelector:
     """The selector registered as ``name``, built with ``kwargs``.
 
+    Args:
+        name: a name in :data:`SELECTORS` (the class with its defaults) or in :data:`SELECTOR_PRESETS` (its
+            class with the preset's arguments).
+        kwargs: arguments of the selector class; over a preset's.
+
     Raises:
-        ValueError: ``name`` is not in :data:`SELECTORS`.
+        ValueError: ``name`` is in neither :data:`SELECTORS` nor :data:`SELECTOR_PRESETS`.
+
+    Example::
+
+        make_selector("paper")  # ErrorGuidedSelector(score="paper", min_separation=None, temperature=None)
+        make_selector("random", mode="area")
     """
-    return SELECTORS[check_choice("name", name, SELECTORS)](**kwargs)
+    check_choice("name", name, [*SELECTORS, *SELECTOR_PRESETS])
+    if name in SELECTOR_PRESETS:
+        base, preset = SELECTOR_PRESETS[name]
+        return SELECTORS[base](**{**preset, **kwargs})
+    return SELECTORS[name](**kwargs)

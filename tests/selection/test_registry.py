@@ -17,6 +17,7 @@ from lightning_vtr.selection import (
     ViewSelector,
     make_selector,
 )
+from lightning_vtr.selection.registry import SELECTOR_PRESETS
 
 
 def test_names_map_to_the_selector_classes_in_table_order():
@@ -51,8 +52,27 @@ def test_make_selector_without_kwargs_uses_the_defaults():
     assert repr(make_selector("random")) == repr(RandomSelector())
 
 
+def test_paper_names_the_papers_exact_selector_and_takes_overrides():
+    assert SELECTOR_PRESETS == {
+        "paper": ("error_guided", {"score": "paper", "min_separation": None, "temperature": None})
+    }
+    paper = make_selector("paper")
+    assert type(paper) is ErrorGuidedSelector
+    assert (paper.score, paper.min_separation, paper.temperature, paper.k, paper.num_views) == (
+        "paper",
+        None,
+        None,
+        30,
+        3,
+    )
+    assert repr(paper) == repr(ErrorGuidedSelector())  # the selector's own defaults are the paper's today
+    assert make_selector("paper", k=15).k == 15
+    assert make_selector("paper", temperature=3.0).temperature == 3.0
+    assert "paper" not in SELECTORS  # a preset, not a row of the paper's Table 1
+
+
 def test_unknown_name_lists_the_registered_names():
-    message = "`name` must be one of 'nature', 'random', 'viat', 'mvtn', 'error_guided', got 'ours'"
+    message = "`name` must be one of 'nature', 'random', 'viat', 'mvtn', 'error_guided', 'paper', got 'ours'"
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         make_selector("ours")
 
