@@ -18,6 +18,8 @@ import typing
 from collections.abc import Collection, Sequence
 from typing import Any
 
+from lightning_vtr.utils.argtypes import at_least, comma_separated
+
 __all__ = ["add_config_arguments", "config_from_arguments", "flag_fields", "option"]
 
 
@@ -29,37 +31,6 @@ def option(name: str) -> str:
 def flag_fields(cls: type, exclude: Collection[str] = ()) -> list[dataclasses.Field]:
     """The fields of dataclass ``cls`` that are flags (their ``metadata`` has ``"flag"``), less ``exclude``."""
     return [f for f in dataclasses.fields(cls) if "flag" in f.metadata and f.name not in exclude]
-
-
-def _at_least(minimum: int) -> Any:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum:
-            what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-        return value
-
-    parse.__name__ = "integer"
-    return parse
-
-
-def _comma_separated(choices: Collection[str] | None) -> Any:
-    def parse(text: str) -> list[str]:
-        items = [item.strip() for item in text.split(",") if item.strip()]
-        if not items:
-            raise argparse.ArgumentTypeError(f"expected a comma-separated list, got {text!r}")
-        unknown = [item for item in items if choices is not None and item not in choices]
-        if unknown:
-            raise argparse.ArgumentTypeError(
-                f"invalid choice(s) {', '.join(map(repr, unknown))} (choose from {', '.join(choices)})"
-            )
-        return items
-
-    parse.__name__ = "comma-separated list"  # argparse names the type in its error messages
-    return parse
 
 
 def _scalar(hint: Any) -> Any:
@@ -89,7 +60,7 @@ def _argument(f: dataclasses.Field, hint: Any, value: Any) -> dict[str, Any]:
     hint = _scalar(hint)
     if typing.get_origin(hint) in (list, tuple, Sequence):
         if spec["comma_separated"]:
-            kwargs["type"] = _comma_separated(None if choices is None else tuple(choices))
+            kwargs["type"] = comma_separated(None if choices is None else tuple(choices))
         else:
             (element, *_) = typing.get_args(hint) or (str,)
             kwargs.update(nargs="+", type=element)
@@ -98,7 +69,7 @@ def _argument(f: dataclasses.Field, hint: Any, value: Any) -> dict[str, Any]:
     if hint is bool:
         raise TypeError(f"field {f.name!r}: a bool flag is not supported; use a choice")
     if spec["minimum"] is not None:
-        kwargs["type"] = _at_least(spec["minimum"])
+        kwargs["type"] = at_least(spec["minimum"])
     elif hint in (int, float):
         kwargs["type"] = hint
     if choices is not None:
