@@ -73,3 +73,77 @@ def test_a_valid_file_gives_its_rows_in_order(tmp_path):
         "random", {"mode": "area"}, {"fraction": 0.3}, title="Area", description="d", max_samples_fraction=0.5
     )
     assert variants["area"].max_samples(21) == 10 and variants["plain"].max_samples(21) is None
+
+
+#: ``resolved_strategy("paper")`` before the callback's default became the tempered rule, written out: the
+#: report's `paper` and `error_guided` rows must keep training exactly this.
+PAPER_RESOLVED = {
+    "selector": "error_guided",
+    "selector_kwargs": {
+        "k": 30,
+        "num_views": 3,
+        "score": "paper",
+        "threshold": 0.4,
+        "min_separation": None,
+        "temperature": None,
+        "mode": None,
+        "mask": None,
+        "reduction": None,
+        "sigma": None,
+        "fallback": "area",
+        "eps": 0.0,
+        "relative": False,
+        "model_batch_size": 72,
+    },
+    "callback_kwargs": {
+        "fraction": 0.05,
+        "search_fraction": 0.05,
+        "generate_for": "random",
+        "min_objects": 1,
+        "use_pool": True,
+        "pool_capacity": None,
+        "pool_refresh": False,
+        "pool_prefer_others": True,
+        "select_at_start": True,
+        "max_samples": None,
+        "batch_size": 16,
+        "source_view_set": "aligned",
+        "seed": 0,
+        "log_images": True,
+        "progress_bar": True,
+    },
+}
+
+
+def _settings(callback) -> dict:
+    selector, pool = callback.selector, callback.pool
+    return {
+        "selector": (type(selector).__name__, selector.score, selector.min_separation, selector.temperature),
+        "search": (callback.fraction, callback.search_fraction, callback.generate_for, callback.min_objects),
+        "pool": (pool.capacity, pool.prefer_others, callback.pool_refresh),
+        "select_at_start": callback.select_at_start,
+        "seed": callback.seed,
+    }
+
+
+@pytest.mark.parametrize("name", ["paper", "error_guided"])
+def test_the_paper_rows_resolve_to_what_they_did_before_the_default_changed(name):
+    from lightning_vtr.experiments.training import resolved_strategy
+
+    assert resolved_strategy(name) == PAPER_RESOLVED
+
+
+def test_the_paper_rows_build_the_papers_callback_and_the_default_is_visible_tau10_search():
+    from lightning_vtr.callback import ErrorGuidedViewAugmentation
+    from lightning_vtr.experiments.config import ExperimentConfig
+    from lightning_vtr.experiments.training import make_strategy
+
+    config = ExperimentConfig(fraction=0.05, seed=2)
+    paper = _settings(ErrorGuidedViewAugmentation.paper(fraction=0.05, seed=2))
+    assert paper["selector"] == ("ErrorGuidedSelector", "paper", None, None)
+    assert paper["search"] == (0.05, 0.05, "random", 1) and paper["pool"] == (None, True, False)
+    assert _settings(make_strategy("paper", config)) == _settings(make_strategy("error_guided", config)) == paper
+    default = _settings(ErrorGuidedViewAugmentation(fraction=0.05, seed=2))
+    assert default["selector"] == ("ErrorGuidedSelector", "visible", 30.0, 10.0)
+    assert default["search"] == (0.05, 0.35, "random", 1) and default["pool"] == (None, True, True)
+    assert _settings(make_strategy("visible_tau10_search", config)) == default
