@@ -9,6 +9,7 @@ import pytest
 import yaml
 from helpers import one_thread
 
+from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.cli import main
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
@@ -35,6 +36,16 @@ def test_every_config_parses(path, capsys):
     if path.stem.startswith("strategy_"):
         selector = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]["selector"]
         assert selector == path.stem.removeprefix("strategy_")
+    if "_paper_" in path.stem:  # the configs "as published" name the paper's exact rule, not the default
+        init_args = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]
+        assert init_args["selector"] == "paper"
+        callback = ErrorGuidedViewAugmentation(selector=init_args["selector"], fraction=init_args["fraction"])
+        assert (callback.selector.score, callback.selector.min_separation, callback.selector.temperature) == (
+            "paper",
+            None,
+            None,
+        )
+        assert (callback.search_fraction, callback.pool_refresh) == (init_args["fraction"], False)
     if "zero123" in path.stem:
         synth = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]["synthesizer"]["init_args"]["synthesizer"]
         assert synth["class_path"] == "lightning_vtr.synthesis.Zero123Synthesizer.from_pretrained"
