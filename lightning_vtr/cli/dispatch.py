@@ -20,7 +20,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
-from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report
+from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report, robustness
 from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
 from lightning_vtr.errors import EXPECTED_ERRORS, UsageError, exit_status, one_line
 
@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callab
     "predict": (predict.HELP, predict.add_arguments, predict.run),
     "pix3d": (pix3d.HELP, pix3d.add_arguments, pix3d.run),
     "evaluate-folder": (pix3d.FOLDER_HELP, pix3d.add_folder_arguments, pix3d.run_folder),
+    "robustness": (robustness.HELP, robustness.add_arguments, robustness.run),
 }
 #: A word that only a LightningCLI command line has: a config, its own options, or a dotted class argument.
 _LIGHTNING_WORD = re.compile(
