@@ -232,7 +232,7 @@ class ViewpointSynthesizer(Synthesizer):
         out = []
         for req in requests:
             vp = np.asarray(req.target_viewpoints, dtype=np.float64)
-            code = np.round(([*vp, 180.0, 90.0]) / [360.0, 180.0] * 65535).astype(np.int64)  # (T, 2)
+            code = np.round((vp + np.array([180.0, 90.0])) / [360.0, 180.0] * 65535).astype(np.int64)  # (T, 2)
             img = np.zeros((len(vp), 2, 2, 4), np.uint8)
             img[:, 0, 0, :2] = code // 256
             img[:, 0, 1, :2] = code % 256

@@ -84,7 +84,7 @@ def test_open_shape_stays_open_and_thin_parts_survive():
         for sign in (-1, 1):
             wall = plane.copy().apply_transform(trimesh.transformations.rotation_matrix(angle, axis))
             offset = np.cross(axis, (0, 0, 1)) * 0.3 * sign
-            parts.append(wall.apply_translation((*offset, 0, 0, 0.1)))
+            parts.append(wall.apply_translation(offset + np.array([0.0, 0.0, 0.1])))
     tray = trimesh.util.concatenate(parts)
     vox = voxelize(tray, 20)
     assert not vox[10, 10, 10]  # the inside of the tray is empty, not filled
