@@ -45,6 +45,7 @@ _PREDICT = ["predict", "--ckpt", "{tmp}/good.ckpt", *_IMAGES, "--out", "{tmp}/ou
 _PIX3D = ["pix3d", "--root", "{tmp}/pix3d", "--checkpoint", "{tmp}/good.ckpt", "--out", "{tmp}/out"]
 _FOLDER = ["evaluate-folder", "--images", "{tmp}/views", "--voxels", "{tmp}/views", "--checkpoint", "{tmp}/good.ckpt"]
 _FIT = ["fit", "--config"]
+_ROBUST = ["robustness", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"]
 
 ROWS: list[Row] = [
     # ------------------------------------------------------------------ build-dataset
@@ -169,6 +170,26 @@ ROWS: list[Row] = [
         1, "views", absent=["out"]),
     Row("evaluate-folder", "`--out` a file", [*_FOLDER, "--out", "{tmp}/notes.txt"],
         "`--out` must be a folder (new, empty or an earlier output), got '{tmp}/notes.txt' (a file)", 2, "views"),
+    # ------------------------------------------------------------------ robustness
+    Row("robustness", "`--ckpt` missing", [*_ROBUST[:2], "{tmp}/none.ckpt", *_ROBUST[3:]],
+        "`--ckpt` must be a checkpoint file, got '{tmp}/none.ckpt' (no such file)", 2, absent=["out"]),
+    Row("robustness", "`--ckpt` truncated (first 5,000 bytes)", [*_ROBUST[:2], "B=" + _TRUNC, *_ROBUST[3:]],
+        f"`--ckpt` {_LIGHTNING} '{_TRUNC}': 5000 bytes torch cannot read (a truncated copy, or not a torch file)",
+        1, absent=["out"]),
+    Row("robustness", "`--ckpt` NAME repeated", [*_ROBUST[:2], "A={tmp}/good.ckpt", "--ckpt", "A=" + _TRUNC, *_ROBUST[3:]],
+        "`--ckpt` NAME 'A' is repeated: every checkpoint needs its own NAME (give one as NAME=CKPT)", 2,
+        absent=["out"]),
+    Row("robustness", "`--data` missing", _ROBUST,
+        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"],
+        note="checked before a model loads"),
+    Row("robustness", "`--data` a folder of other files", [*_ROBUST[:4], "{tmp}/other", *_ROBUST[5:]],
+        _NO_METADATA % ("other", "other"), 2, "other", absent=["out"]),
+    Row("robustness", "`--k 7` (does not divide 180)", [*_ROBUST, "--k", "7"],
+        "`--k` must be a bin interval K in degrees that divides 180, got 7", 2, absent=["out"]),
+    Row("robustness", "`--objects 0`", [*_ROBUST, "--objects", "0"],
+        "argument --objects: expected a positive integer, got '0'", 2, argparse=True),
+    Row("robustness", "`--out` holds other files", [*_ROBUST[:6], "{tmp}/other"],
+        "`--out` " + _OTHER % ("bins.csv", "other"), 2, "other", absent=["other/index.html"]),
     # ------------------------------------------------------------------ fit / validate / test / predict (LightningCLI)
     Row("fit", "`--config` missing", [*_FIT, "{tmp}/none.yaml"],
         "`--config` must be a YAML config file, got '{tmp}/none.yaml' (no such file)", 2),
