@@ -14,7 +14,12 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # pragma: no cover
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.data.datamodule import VTRDataModule
-    from lightning_vtr.protocol import ReconstructionModel, check_reconstruction_model
+    from lightning_vtr.protocol import (
+        AugmentableDataModule,
+        ReconstructionModel,
+        check_augmentable_datamodule,
+        check_reconstruction_model,
+    )
     from lightning_vtr.selection.registry import SELECTORS
 
 __version__ = "0.3.0"
@@ -23,16 +28,20 @@ __version__ = "0.3.0"
 _EXPORTS = {
     "ErrorGuidedViewAugmentation": "lightning_vtr.callback",
     "VTRDataModule": "lightning_vtr.data.datamodule",
+    "AugmentableDataModule": "lightning_vtr.protocol",
     "ReconstructionModel": "lightning_vtr.protocol",
+    "check_augmentable_datamodule": "lightning_vtr.protocol",
     "check_reconstruction_model": "lightning_vtr.protocol",
     "SELECTORS": "lightning_vtr.selection.registry",
 }
 __all__ = [
     "SELECTORS",
+    "AugmentableDataModule",
     "ErrorGuidedViewAugmentation",
     "ReconstructionModel",
     "VTRDataModule",
     "__version__",
+    "check_augmentable_datamodule",
     "check_reconstruction_model",
 ]
 
