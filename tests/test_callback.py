@@ -246,7 +246,9 @@ def test_any_selector_runs_through_the_same_callback(tiny_dataset, tmp_path, sel
 
 #: The per-object (sharded) default and the relative score, which the callback runs batched on rank 0.
 GUIDED = {
-    "per_object": lambda: None,
+    "per_object": lambda: "paper",
+    # the callback's default: tempered sampling, 35 % searched, the pool rebuilt at every selection
+    "default": lambda: None,
     "relative": lambda: ErrorGuidedSelector(relative=True),
     # renders every candidate view and queries the model: 8 bins at K = 90 keep it quick
     "input": lambda: ErrorGuidedSelector(k=90, score="input"),
@@ -305,7 +307,7 @@ class DatasetDigestProbe(L.Callback):
 @pytest.mark.slow
 @pytest.mark.parametrize("guided", sorted(GUIDED))
 def test_two_process_ddp_generates_what_one_process_does(tiny_dataset, tmp_path, guided, request):
-    if guided == "per_object":  # the default selector: the shared fit of the same arguments
+    if guided == "per_object":  # the paper's rule: the shared fit of the same arguments
         single = request.getfixturevalue("pool_run")[2]
     else:
         single = tmp_path / "single"
