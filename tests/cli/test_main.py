@@ -27,7 +27,15 @@ def test_the_package_exports_the_dispatcher():
 
 
 def test_every_registered_command_has_a_sub_parser_and_a_help_line(capsys):
-    assert list(COMMANDS) == ["build-dataset", "dataset-info", "report", "predict", "pix3d", "evaluate-folder"]
+    assert list(COMMANDS) == [
+        "build-dataset",
+        "dataset-info",
+        "report",
+        "predict",
+        "pix3d",
+        "evaluate-folder",
+        "robustness",
+    ]
     assert list(_subcommands(build_parser())) == list(COMMANDS)
     with pytest.raises(SystemExit) as exit_info:
         main(["--help"])
