@@ -12,7 +12,7 @@ import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import lightning as L
 import numpy as np
@@ -25,7 +25,12 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from lightning_vtr.data.dataset import GeneratedSample
-from lightning_vtr.protocol import check_augmentable_datamodule, check_reconstruction_model
+from lightning_vtr.protocol import (
+    AugmentableDataModule,
+    ReconstructionModel,
+    check_augmentable_datamodule,
+    check_reconstruction_model,
+)
 from lightning_vtr.selection.base import SelectionContext, ViewSelector
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities, check_type
@@ -83,6 +88,22 @@ def _reload_train_dataloader(trainer: L.Trainer) -> None:
             "ErrorGuidedViewAugmentation could not ask this Lightning version to rebuild the train loader; the "
             "views generated before this epoch are trained on from the next epoch."
         )
+
+
+def _attached_datamodule(trainer: L.Trainer) -> AugmentableDataModule | None:
+    """``trainer.datamodule`` (``None`` when fit got none), as ``setup`` requires it to be.
+
+    Lightning sets the attribute at runtime but its type information does not declare it; ``setup`` checks
+    that it satisfies :class:`AugmentableDataModule`, which the cast states.
+    """
+    return cast("AugmentableDataModule | None", cast(Any, trainer).datamodule)
+
+
+def _datamodule(trainer: L.Trainer) -> AugmentableDataModule:
+    """``trainer.datamodule`` after ``setup``, which refuses a fit without one."""
+    dm = _attached_datamodule(trainer)
+    assert dm is not None, "ErrorGuidedViewAugmentation.setup refuses a fit without a datamodule"
+    return dm
 
 
 def _all_gather(trainer: L.Trainer, obj: Any) -> list[Any]:
@@ -384,13 +405,15 @@ class ErrorGuidedViewAugmentation(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage != "fit":
             return
-        if trainer.reload_dataloaders_every_n_epochs != 1:
+        # Set by Lightning at runtime but not declared in its type information.
+        reload_every = cast(Any, trainer).reload_dataloaders_every_n_epochs
+        if reload_every != 1:
             raise MisconfigurationException(
                 "ErrorGuidedViewAugmentation adds samples at epoch ends, which the next epoch only sees if the train "
                 "dataloader is rebuilt: pass `Trainer(reload_dataloaders_every_n_epochs=1)` "
-                f"(got {trainer.reload_dataloaders_every_n_epochs})."
+                f"(got {reload_every})."
             )
-        dm = trainer.datamodule
+        dm = _attached_datamodule(trainer)
         if dm is None:
             raise MisconfigurationException(
                 "ErrorGuidedViewAugmentation needs a datamodule satisfying lightning_vtr.protocol.AugmentableDataModule, "
@@ -419,7 +442,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
     @torch.no_grad()
     def _check_model_output(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Refuse a model whose ``predict_voxels`` does not give the dataset's voxel grid (one training item)."""
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         records = dm.split_records("train")
         if not records:
             return  # `_run` warns that nothing can be generated
@@ -495,7 +518,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
             model=pl_module,
             synthesizer=self.synthesizer,
             requests=requests,
-            transform=trainer.datamodule.transform,
+            transform=_datamodule(trainer).transform,
             loss_fn=loss_fn,
             device=pl_module.device,
         )
@@ -515,7 +538,8 @@ class ErrorGuidedViewAugmentation(L.Callback):
         for start in range(0, len(images), self.batch_size):
             batch = torch.stack(images[start : start + self.batch_size]).to(pl_module.device)
             with pl_module.trainer.precision_plugin.forward_context():
-                out = pl_module.predict_voxels(batch)
+                # `setup` checked that the model satisfies ReconstructionModel.
+                out = cast(ReconstructionModel, pl_module).predict_voxels(batch)
             if not isinstance(out, Tensor) or out.ndim != 4 or out.shape[0] != batch.shape[0]:
                 found = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
                 raise ValueError(
@@ -529,7 +553,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, chosen: list[int]
     ) -> list[_Selected]:
         """Predict the chosen objects (sharded by rank), select their views, return them merged in order."""
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         records = dm.split_records("train")
         mine = chosen[trainer.global_rank :: trainer.world_size]
         was_training = pl_module.training
@@ -570,7 +594,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
     ) -> list[_Selected]:
         # Learning selectors see every searched object in one call on rank 0; the selections and the learned
         # state are broadcast so every rank (and rank 0's checkpoint) holds the same selector.
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         records = dm.split_records("train")
         parts = _all_gather(trainer, (mine, predicted, target))
         indices = [i for part in parts for i in part[0]]
@@ -636,7 +660,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
     def _synthesize(
         self, trainer: L.Trainer, epoch: int, selected: list[_Selected], view_sets: list[np.ndarray]
     ) -> list[np.ndarray]:
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         records = dm.split_records("train")
         rank, world = trainer.global_rank, trainer.world_size
         mine = list(range(rank, len(selected), world))
@@ -661,7 +685,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         return [merged[j] for j in range(len(selected))]
 
     def _run(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int) -> None:
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         num_train = len(dm.split_records("train"))
         if num_train == 0:
             rank_zero_warn("ErrorGuidedViewAugmentation: the datamodule has no training objects; nothing generated.")
@@ -693,7 +717,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
     def _log(
         self, trainer: L.Trainer, pl_module: L.LightningModule, record: dict[str, Any], samples: list[GeneratedSample]
     ) -> None:
-        total = len(trainer.datamodule.generated_samples)
+        total = len(_datamodule(trainer).generated_samples)
         metrics = {
             "vtr/samples_generated": float(len(samples)),
             "vtr/samples_total": float(total),
@@ -733,7 +757,7 @@ class ErrorGuidedViewAugmentation(L.Callback):
         ``count`` objects given new views, predicted again by the current model (rank 0 only, a few objects)."""
         from lightning_vtr.visualize import object_sheet, stack_sheets
 
-        dm = trainer.datamodule
+        dm = _datamodule(trainer)
         seed = record["epoch"] + 1  # the views the selection predicted from
         records = [dm.record(*name.split("/", 1)) for name in record["objects"][:count]]
         items = [dm.eval_item(rec, self.source_view_set, seed=seed) for rec in records]
