@@ -25,7 +25,7 @@ __all__ = ["SCORES", "ErrorGuidedSelector", "relative_to_category"]
 
 #: The view scores, as ``(error mode, mask, reduction)`` of the error projection; ``"visible"`` projects the
 #: surface of prediction and truth together instead of the error alone (see :func:`visible_error_scores`).
-SCORES: dict[str, tuple[str, str | None, str]] = {
+SCORES: dict[str, tuple[Literal["binary", "soft"], Literal["gt"] | None, Literal["sum", "mean"]]] = {
     "paper": ("binary", None, "sum"),  # the paper: binary error, summed first-hit map
     "released": ("soft", "gt", "mean"),  # the authors' released code: soft error inside GT, mean over hits
     "visible": ("binary", None, "sum"),  # ours: the error on the surface a camera sees, summed

@@ -44,8 +44,10 @@ class _ViewRegressor(nn.Module):
             nn.Flatten(),
         )
         self.head = nn.Sequential(nn.Linear(2 * width * 64, hidden), nn.ReLU(), nn.Linear(hidden, 2 * num_views))
-        nn.init.zeros_(self.head[-1].weight)
-        nn.init.zeros_(self.head[-1].bias)
+        last = self.head[-1]
+        assert isinstance(last, nn.Linear)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def forward(self, volumes: Tensor) -> Tensor:
         return self.head(self.encoder(volumes)).view(-1, self.num_views, 2)

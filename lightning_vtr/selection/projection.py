@@ -39,7 +39,7 @@ from __future__ import annotations
 import itertools
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -273,7 +273,7 @@ def _view_groups(
     strides = torch.tensor([resolution * resolution, resolution, 1])
     padded_strides = torch.tensor([(resolution + 1) ** 2, resolution + 1, 1])
     codes = torch.arange(256)
-    bit_count = sum((codes >> bit) & 1 for bit in range(8))
+    bit_count = cast(Tensor, sum((codes >> bit) & 1 for bit in range(8)))  # a sum of tensors: a tensor
     groups = []
     for steps, views in by_steps.items():
         columns = torch.tensor(views)
@@ -313,7 +313,8 @@ def _smallest_hitting_sets(hides: Tensor, own: int, codes: Tensor, bit_count: Te
     sign bit); ANDing each row's ``covers`` words over its masks leaves the candidates that hit them all, and
     the lowest set bit is the first.
     """
-    distance = sum(((codes >> bit) & 1) * bin(bit ^ own).count("1") for bit in range(8))
+    # a sum of tensors: a tensor
+    distance = cast(Tensor, sum(((codes >> bit) & 1) * bin(bit ^ own).count("1") for bit in range(8)))
     candidates = codes[(codes >> own) & 1 == 0]
     candidates = candidates[torch.argsort(bit_count[candidates] * 64 + distance[candidates], stable=True)]
     position = torch.arange(len(candidates))
@@ -575,7 +576,8 @@ def _object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> l
     batch = len(pairs)
     count = max(-(-pairs[-1] // _SCORE_CHUNK_PAIRS), -(-batch * slots_per_object // _SCORE_CHUNK_SLOTS), 1)
     max_objects = max(1, _SCORE_CHUNK_SLOTS // slots_per_object)
-    chunks, start = [], 0
+    chunks: list[slice] = []
+    start = 0
     while start < batch:
         # chunk c < count ends where the running pair count first reaches c / count of the total; the last takes
         # the rest; all within the object bound

@@ -199,6 +199,7 @@ class VIATSelector(ViewSelector):
         """
         # 1. check inputs
         self._check_inputs(target, categories, context)
+        assert context is not None, "_check_inputs refuses a missing context"
         # The callback may call us under no_grad / inference mode; the mixtures are trained with
         # autograd and must stay ordinary tensors.
         with torch.inference_mode(False), torch.enable_grad():
