@@ -147,13 +147,17 @@ def _main_table(
         "",
         robustness_table(summary.rows, results.payloads, METRICS, seeds),
     ]
-    merged = [run for run in runs if run.same_as is not None and run.name in summary.rows.values()]
+    merged = [
+        (run.strategy, run.same_as) for run in runs if run.same_as is not None and run.name in summary.rows.values()
+    ]
     strategy_of = {run.name: run.strategy for run in runs}
     if merged:
         sections += [
             "",
             "Rows fitted once because their selector and callback arguments are identical: "
-            + "; ".join(f"{STRATEGY_TITLES[r.strategy]} = {STRATEGY_TITLES[strategy_of[r.same_as]]}" for r in merged)
+            + "; ".join(
+                f"{STRATEGY_TITLES[strategy]} = {STRATEGY_TITLES[strategy_of[same_as]]}" for strategy, same_as in merged
+            )
             + ".",
         ]
     return sections

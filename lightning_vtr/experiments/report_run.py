@@ -182,7 +182,9 @@ def _run_in_parallel(config: ReportConfig, runs: list[ReportRun]) -> None:
     finished = 0
     context = multiprocessing.get_context("spawn")
     with futures.ProcessPoolExecutor(config.jobs, mp_context=context) as pool:
-        pending = {pool.submit(_fit_unit, config, seed, None, threads): (seed, None) for seed in config.seeds}
+        pending: dict[futures.Future[float], tuple[int, ReportRun | None]] = {
+            pool.submit(_fit_unit, config, seed, None, threads): (seed, None) for seed in config.seeds
+        }
         while pending:
             done, _ = futures.wait(pending, return_when=futures.FIRST_COMPLETED)
             for future in done:
@@ -213,6 +215,7 @@ def read_json(path: Path) -> dict | None:
 
 def single_view(run: ReportRun, exp: ExperimentConfig, source: dict) -> dict:
     """Test the fine-tuned model of ``run.single_view_of`` with 1 input view; cached in ``results.json``."""
+    assert run.single_view_of is not None, "single_view tests single-view runs only"
     run_dir = Path(exp.out) / run.name
     result_file = run_dir / "results.json"
     if result_file.is_file():

@@ -120,6 +120,7 @@ def _parameters(cls: type) -> set[str] | None:
 def _unknown(where: str, keys: Any, known: set[str] | None) -> None:
     unknown = sorted(k for k in keys if known is not None and k not in known)
     if unknown:
+        assert known is not None, "a key is unknown only against a known set"
         raise StrategyFileError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} (expected {sorted(known)})")
 
 

@@ -226,7 +226,9 @@ def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelR
     return model_class(preset=config.preset, **kwargs)
 
 
-def make_datamodule(config: ExperimentConfig, model: L.LightningModule, num_views: int | None = None) -> VTRDataModule:
+def make_datamodule(
+    config: ExperimentConfig, model: VoxelReconstructionModule, num_views: int | None = None
+) -> VTRDataModule:
     """The experiment's datamodule.
 
     Args:
