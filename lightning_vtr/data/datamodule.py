@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, Sequence, Sized
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import numpy as np
@@ -61,7 +61,7 @@ class _UnpaddedShardSampler(DistributedSampler):
 
     def __init__(self, dataset: torch.utils.data.Dataset, num_replicas: int, rank: int) -> None:
         super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False)
-        self.total_size = len(dataset)
+        self.total_size = len(cast(Sized, dataset))  # the datasets served here are map-style, with a length
         self.num_samples = len(range(rank, self.total_size, num_replicas))
 
     def __iter__(self):
@@ -199,8 +199,8 @@ class VTRDataModule(L.LightningDataModule):
         self.root = Path(root).expanduser() if root is not None else None
         self.shapenet_rendering = shapenet_rendering
         self.num_views = int(num_views)
-        background, background_folder = _split_background(background, background_range)
-        self.recipe = _resolve_recipe(recipe, background, normalize, background_range)
+        colour, background_folder = _split_background(background, background_range)
+        self.recipe = _resolve_recipe(recipe, colour, normalize, background_range)
         if background_folder is not None:
             self.recipe = dataclasses.replace(self.recipe, background_folder=background_folder)
         #: validation/test (and the callback's) transform; ``train_transform`` adds the recipe's random ops.
@@ -247,6 +247,7 @@ class VTRDataModule(L.LightningDataModule):
         else:
             from lightning_vtr.data.format import scan_dataset
 
+            assert root is not None, "_resolve_root sets a root when there is no shapenet_rendering"
             if self.verify:
                 self._verify(root)
             records = scan_dataset(root)
@@ -270,13 +271,14 @@ class VTRDataModule(L.LightningDataModule):
         from lightning_vtr.data.format import DatasetFormatError
         from lightning_vtr.data.verify import verify_dataset
 
-        distributed = self.trainer is not None and self.trainer.world_size > 1
+        trainer = self.trainer
+        distributed = trainer is not None and trainer.world_size > 1
         message = None
-        if not distributed or self.trainer.is_global_zero:
-            report = verify_dataset(root, progress=self.trainer is None or self.trainer.is_global_zero)
+        if trainer is None or not distributed or trainer.is_global_zero:
+            report = verify_dataset(root, progress=trainer is None or trainer.is_global_zero)
             message = None if report.ok else report.error_message()
-        if distributed:
-            message = self.trainer.strategy.broadcast(message, src=0)
+        if trainer is not None and distributed:
+            message = trainer.strategy.broadcast(message, src=0)
         if message:
             raise DatasetFormatError(message)
 
@@ -284,7 +286,8 @@ class VTRDataModule(L.LightningDataModule):
     def records(self) -> list[ObjectRecord]:
         if self._records is None:
             self.setup()
-        return self._records  # type: ignore[return-value]
+        assert self._records is not None, "setup sets the records"
+        return self._records
 
     def split_records(self, split: str) -> list[ObjectRecord]:
         """Objects of one split (``"train"``, ``"val"`` or ``"test"``), in a fixed order."""
@@ -336,7 +339,10 @@ class VTRDataModule(L.LightningDataModule):
         # Shuffling seeded by (seed, epoch) afresh at every iter(): the data order is a function of the epoch
         # alone, however often Lightning iterates the loader, so a resumed run trains on exactly the batches
         # an uninterrupted run would. (Under DDP Lightning swaps in a DistributedSampler, seeded likewise.)
-        sampler = _EpochSeededSampler(len(dataset), self.seed * 100_003 + self._epoch()) if shuffle else None
+        # The datasets served here are map-style, with a length.
+        sampler = (
+            _EpochSeededSampler(len(cast(Sized, dataset)), self.seed * 100_003 + self._epoch()) if shuffle else None
+        )
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
@@ -381,7 +387,7 @@ class VTRDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ what the callback uses
     def object_views(
-        self, record: ObjectRecord, view_set: str = "aligned", indices: Sequence[int] | None = None
+        self, record: ObjectRecord, view_set: str = "aligned", indices: Sequence[int] | np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(images (V, H, W, 4) uint8, viewpoints (V, 2) degrees)`` of one object's view set."""
         paths, viewpoints = record.views[view_set]
@@ -496,7 +502,7 @@ class VTRDataModule(L.LightningDataModule):
 _FOLDER_PREFIX = "folder:"
 
 
-def _split_background(background: Any, background_range: Any) -> tuple[Any, str | None]:
+def _split_background(background: Sequence[int] | str, background_range: Any) -> tuple[Sequence[int], str | None]:
     """``(colour, folder)``: an RGB ``background`` as is, or ``"folder:PATH"`` as the plain colour and ``PATH``."""
     if not isinstance(background, str):
         return background, None
@@ -522,7 +528,12 @@ def _resolve_recipe(
     if isinstance(recipe, str):
         check_choice("recipe", recipe, tuple(IMAGE_RECIPES))
         if recipe == "plain":
-            return ImageRecipe(background=background, background_range=background_range, normalize=normalize)
+            # ImageRecipe.__post_init__ checks the given sequences and stores them as its tuple fields.
+            return ImageRecipe(
+                background=cast("tuple[int, int, int]", background),
+                background_range=cast("tuple[tuple[int, int], ...] | None", background_range),
+                normalize=normalize,
+            )
         resolved = IMAGE_RECIPES[recipe]
     elif isinstance(recipe, Mapping):
         resolved = ImageRecipe(**recipe)

@@ -272,7 +272,7 @@ def _record(root: Path, index: int, entry: Any, annotations: Path) -> Pix3DRecor
         image_path=root / image,
         mask_path=root / str(entry["mask"]),
         voxel_path=root / voxel,
-        bbox=tuple(float(v) for v in bbox),  # type: ignore[arg-type]
+        bbox=tuple(float(v) for v in bbox),  # type: ignore[arg-type]  # _numbers checked it has 4 numbers
         image_size=(int(size[0]), int(size[1])),
         rotation=rotation,
         translation=translation,

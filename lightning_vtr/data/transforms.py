@@ -556,10 +556,10 @@ class ImageTransform:
                 picks.append((index, float(u), float(v)))
             scenes = tuple(picks)
         return _Draw(
-            background=background,  # type: ignore[arg-type]
-            factors=tuple(float(1.0 + j) for j in jitter),  # type: ignore[arg-type]
+            background=background,  # type: ignore[arg-type]  # one value per RGB channel: three
+            factors=tuple(float(1.0 + j) for j in jitter),  # type: ignore[arg-type]  # jitter has three values
             order=tuple(int(i) for i in order),
-            lighting=tuple(float(a) for a in lighting),  # type: ignore[arg-type]
+            lighting=tuple(float(a) for a in lighting),  # type: ignore[arg-type]  # lighting has three values
             channels=tuple(int(c) for c in channels) if r.permute_rgb else (0, 1, 2),
             flips=tuple(bool(f) for f in flips) if r.hflip else (False,) * num_images,
             scenes=scenes,
@@ -588,7 +588,8 @@ class ImageTransform:
         if x.shape[-1] == 4:
             if draw is not None and draw.scenes:  # a crop of a folder image per view, the view's size
                 height, width = batch.shape[1:3]
-                crops = [self.backgrounds.crop(i, (u, v), height, width) for i, u, v in draw.scenes]  # type: ignore[union-attr]
+                assert self.backgrounds is not None, "draw makes scenes only with a background folder"
+                crops = [self.backgrounds.crop(i, (u, v), height, width) for i, u, v in draw.scenes]
                 bg = torch.from_numpy(np.stack(crops)).to(x.dtype) / 255.0  # (T, H, W, 3)
             else:
                 bg = torch.tensor(background, dtype=x.dtype) / 255.0

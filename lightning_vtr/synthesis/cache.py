@@ -156,11 +156,11 @@ class CachedSynthesizer(Synthesizer):
         self.cache = SynthesisCache(cache_dir)
 
     @property
-    def image_size(self) -> int:  # type: ignore[override]
+    def image_size(self) -> int:  # type: ignore[override]  # read-only: the wrapped synthesizer's
         return self.synthesizer.image_size
 
     @property
-    def needs_source_images(self) -> bool:  # type: ignore[override]
+    def needs_source_images(self) -> bool:  # type: ignore[override]  # read-only: the wrapped synthesizer's
         return self.synthesizer.needs_source_images
 
     def config_key(self) -> str:
