@@ -87,7 +87,7 @@ def test_lightning_still_has_the_reload_attribute_the_callback_writes(tmp_path):
 def _fit(root, run_dir, epochs, seed, ckpt=None, samples_of=None):
     # `samples_of`: the run whose generated samples a resume reads (its datamodule state lists them)
     dm = make_datamodule(root, samples_of or run_dir)
-    callback = make_callback(fraction=0.15, seed=seed, max_samples=2)
+    callback = make_callback(selector="paper", fraction=0.15, seed=seed, max_samples=2)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "ckpt", save_last=True)
     make_trainer(run_dir, epochs, [callback, checkpoint]).fit(TinyUserModel(), datamodule=dm, ckpt_path=ckpt)
     return dm, callback
@@ -95,7 +95,8 @@ def _fit(root, run_dir, epochs, seed, ckpt=None, samples_of=None):
 
 @pytest.fixture(scope="module")
 def one_epoch(tiny_dataset, tmp_path_factory):
-    """A 1-epoch fit (seed 0, one selection before epoch 0, ``max_samples=2``) and its last checkpoint."""
+    """A 1-epoch fit (the paper's rule, seed 0, one selection before epoch 0, ``max_samples=2``) and its last
+    checkpoint."""
     run_dir = tmp_path_factory.mktemp("contract_run")
     dm, callback = _fit(tiny_dataset, run_dir, 1, seed=0)
     return run_dir, dm, callback

@@ -5,6 +5,7 @@ The harness examples print the results their runs wrote; the quickstart trains w
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import json
 from pathlib import Path
@@ -12,6 +13,12 @@ from pathlib import Path
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _assert_no_lightning_test_table(printed: str) -> None:
+    """Lightning's ``trainer.test`` table (a row per category, view set and threshold) is not printed."""
+    assert "Test metric" not in printed and "DataLoader 0" not in printed
+    assert not [line for line in printed.splitlines() if "test/aligned" in line or "iou@0.3" in line]
 
 
 def _load(name: str):
@@ -54,6 +61,7 @@ def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, na
     # Two selections (before epoch 0 and after it) of 15 % of the 21 training objects; the baseline generates nothing.
     assert runs[f"Ours ({title})"]["generated_samples"] == 2 * round(0.15 * 21)
     assert runs[f"{title} (no VTR)"]["generated_samples"] == 0
+    _assert_no_lightning_test_table(printed)
 
 
 @pytest.mark.slow
@@ -68,3 +76,23 @@ def test_quickstart_trains_with_the_callback_and_tests_every_view_set(tiny_datas
     for view_set in ("aligned", "hemispherical", "spherical"):
         for metric in ("iou@0.4", "fscore"):
             assert 0.0 <= metrics[f"test/{view_set}/{metric}"] <= 1.0
+
+    # It ends with one compact table, a line per view set, then the line naming the per-category CSV.
+    lines = printed.splitlines()
+    header = lines.index(next(line for line in lines if line.startswith("test views")))
+    assert lines[header].split() == ["test", "views", "mIoU@0.4", "%", "F-score", "%"]
+    assert len(lines) == header + 5
+    for line, view_set in zip(lines[header + 1 : header + 4], ("aligned", "hemispherical", "spherical")):
+        iou, fscore = (100 * metrics[f"test/{view_set}/{m}"] for m in ("iou@0.4", "fscore"))
+        assert line.split() == [view_set.capitalize(), f"{iou:.2f}", f"{fscore:.2f}"]
+    _assert_no_lightning_test_table(printed)
+    assert lines[-1].startswith("per-category figures, every threshold: ")
+    csv_path = Path(lines[-1].split(": ", 1)[1].split(" (and the logger")[0])
+    assert csv_path.name == "test_metrics.csv" and csv_path.is_file()
+    rows = list(csv.DictReader(csv_path.open()))
+    # every value trainer.test returned, per category too, once
+    assert len(rows) == len([k for k in metrics if k.startswith("test/")])
+    for row in rows:
+        key = "/".join(part for part in ("test", row["view_set"], row["category"], row["metric"]) if part)
+        assert float(row["value"]) == pytest.approx(metrics[key])
+    assert any(row["category"] and row["metric"] == "iou@0.3" for row in rows)
