@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from lightning_vtr.experiments.strategies import DEFAULT_STRATEGY
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
@@ -52,7 +54,8 @@ def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, na
     printed = capsys.readouterr().out
 
     assert list(runs) == [f"{title} (no VTR)", f"Ours ({title})"]
-    for run_dir, row in (("none", f"{title} (no VTR)"), ("error_guided", f"Ours ({title})")):
+    # "Ours" is the callback's default rule
+    for run_dir, row in (("none", f"{title} (no VTR)"), (DEFAULT_STRATEGY, f"Ours ({title})")):
         saved = json.loads((out / run_dir / "results.json").read_text())
         assert saved["results"] == runs[row]["results"]
         assert saved["config"]["finetune_lr"] == "cosine"

@@ -16,6 +16,7 @@ from typing import Any
 from lightning_vtr.evaluation.tables import format_robustness_table
 from lightning_vtr.experiments.config import ExperimentConfig
 from lightning_vtr.experiments.flags import add_config_arguments, config_from_arguments
+from lightning_vtr.experiments.strategies import DEFAULT_STRATEGY
 from lightning_vtr.experiments.training import MODELS, pretrain, run_strategy
 from lightning_vtr.utils.validation import check_choice
 
@@ -72,7 +73,7 @@ def compare(config: ExperimentConfig, *, synthesizer: Any = None) -> dict[str, d
     print(f"pretrained on Aligned: {ckpt} ({time.perf_counter() - start:.0f} s)")
     runs = {
         f"{title} (no VTR)": run_strategy("none", config, ckpt),
-        f"Ours ({title})": run_strategy("error_guided", config, ckpt, synthesizer=synthesizer),
+        f"Ours ({title})": run_strategy(DEFAULT_STRATEGY, config, ckpt, synthesizer=synthesizer),
     }
     print()
     print(format_robustness_table({k: v["results"] for k, v in runs.items()}))

@@ -222,9 +222,11 @@ def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVaria
 
 
 #: Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
-#: The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults, so
-#: ``"error_guided"`` is whatever ``ErrorGuidedSelector()`` and ``ErrorGuidedViewAugmentation()`` default to.
+#: The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
+#: callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``).
 VARIANTS: dict[str, StrategyVariant] = load_variants()
+#: The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments (the examples' "Ours").
+DEFAULT_STRATEGY = "visible_tau10_search"
 #: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
 #: :data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`.
 STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)

@@ -456,8 +456,11 @@ def resolved_strategy(
     arguments = {k: v for k, v in callback.arguments.items() if k not in ("selector", "synthesizer")}
     if arguments.get("use_pool") is None:  # the callback's default: the selector's preference
         arguments["use_pool"] = selector_class.uses_pool
-    if arguments.get("search_fraction") is None:  # the callback's default: search as many as given views
+    # the callback's defaults for a selector it is given: search as many as given views, keep the pool
+    if arguments.get("search_fraction") is None:
         arguments["search_fraction"] = arguments["fraction"]
+    if arguments.get("pool_refresh") is None:
+        arguments["pool_refresh"] = False
     if capped:
         arguments["max_samples_fraction"] = variant.max_samples_fraction
     return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
