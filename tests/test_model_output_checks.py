@@ -71,12 +71,12 @@ def test_non_finite_values_are_counted(tiny_dataset, tmp_path):
 
 
 def test_the_selection_checks_every_prediction(tiny_dataset, tmp_path):
-    # a model that passes the fit-start check and returns logits afterwards: the first selection (on_train_start,
-    # 2 objects in one batch) refuses them
+    # a model that passes the fit-start check and returns logits afterwards: the first selection (on_train_start;
+    # the default rule scores 35 % of the 21 training objects, 7, in one batch) refuses them
     model = FixedOutputModel(torch.full((32, 32, 32), -1.0), calls_before=1)
     message = (
         "`FixedOutputModel.predict_voxels` must return probabilities in [0, 1], got values in [-1, -1] "
-        f"(0 non-finite of 65536); {_HINT}"
+        f"(0 non-finite of {7 * 32**3}); {_HINT}"
     )
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         _fit(tiny_dataset, tmp_path, model)

@@ -224,13 +224,10 @@ def configured_model(words: Sequence[str]) -> type | None:
 
 
 def _model_classes() -> list[type]:
-    """The reconstruction model classes defined so far (the package's and any the user imported)."""
-    found, queue = [], [VoxelReconstructionModule]
-    while queue:
-        for cls in queue.pop().__subclasses__():
-            found.append(cls)
-            queue.append(cls)
-    return found
+    """The package's reconstruction model classes (:data:`lightning_vtr.models.MODELS`)."""
+    from lightning_vtr.models import MODELS
+
+    return list(MODELS.values())
 
 
 def check_checkpoint_class(path: str, model: type | None) -> None:

@@ -7,6 +7,7 @@ import argparse
 import pytest
 
 import lightning_vtr.experiments.comparison as comparison
+from lightning_vtr.experiments.strategies import DEFAULT_STRATEGY
 from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, ExperimentConfig
 
 
@@ -40,7 +41,7 @@ def test_run_comparison_fine_tunes_without_and_with_the_callback_and_prints_both
     runs = comparison.run_comparison(args, "lrgt", lr=0.01)
 
     assert list(runs) == ["LRGT (no VTR)", "Ours (LRGT)"]
-    assert [s[0] for s in seen] == ["none", "error_guided"]
+    assert [s[0] for s in seen] == ["none", DEFAULT_STRATEGY]  # Ours: the callback's default rule
     config = seen[0][1]
     assert config == ExperimentConfig(
         model="lrgt",
