@@ -24,7 +24,7 @@ from lightning_vtr.evaluation.score_validity import format_validity_table, valid
 from lightning_vtr.geometry import check_bin_interval
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.selection.base import SelectionContext
-from lightning_vtr.selection.error_guided import SCORES, ErrorGuidedSelector
+from lightning_vtr.selection.error_guided import OBJECT_SCORES, ErrorGuidedSelector
 from lightning_vtr.utils.validation import check_choice, check_int, check_probabilities
 
 __all__ = ["bce_per_object", "selection_scores", "validity_table"]
@@ -53,7 +53,7 @@ def selection_scores(
     objects: Any,
     *,
     k: int = 30,
-    scores: Sequence[str] = tuple(SCORES),
+    scores: Sequence[str] = OBJECT_SCORES,
     source_view_set: str = "aligned",
     seed: int = 0,
     synthesizer: Any = None,
@@ -97,7 +97,7 @@ def selection_scores(
     """
     k = check_bin_interval(k)
     for name in scores:
-        check_choice("scores", name, tuple(SCORES))
+        check_choice("scores", name, OBJECT_SCORES)
     batch_size = check_int("batch_size", batch_size, minimum=1)
     records, default_transform, load_target = _records_and_transform(objects, split, model)
     transform = default_transform if transform is None else transform
@@ -148,7 +148,7 @@ def selection_scores(
             )
         out: dict[str, np.ndarray] = {}
         for name in scores:
-            score: Any = name  # one of SCORES, checked above
+            score: Any = name  # one of OBJECT_SCORES, checked above
             selector = ErrorGuidedSelector(k=k, score=score, threshold=threshold, model_batch_size=batch_size)
             out[name] = selector.score_views(predicted, target, context if name == "input" else None).double().numpy()
     finally:

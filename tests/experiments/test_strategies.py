@@ -16,7 +16,7 @@ from lightning_vtr.experiments.strategies import (
 
 def test_the_shipped_file_is_the_registry_and_no_row_depends_on_a_dataset_size():
     assert STRATEGIES_FILE.name == "strategies.yaml" and STRATEGIES_FILE.is_file()
-    assert load_variants() == VARIANTS and len(VARIANTS) == 27
+    assert load_variants() == VARIANTS and len(VARIANTS) == 29
     rows = yaml.safe_load(STRATEGIES_FILE.read_text())
     assert list(rows) == list(VARIANTS)
     for name, variant in VARIANTS.items():

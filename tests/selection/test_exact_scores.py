@@ -20,12 +20,23 @@ from lightning_vtr.selection.projection import error_volume, projection_scores, 
 
 
 # ------------------------------------------------------------------------------------ reference
-def first_hit_voxels(occupied: np.ndarray, view: torch.Tensor) -> dict[int, int]:
+def pixel_coords(views: torch.Tensor, res: int) -> torch.Tensor:
+    """``(V, R^3, 3)`` pixel coordinates of the voxel centres, projected in the scores' chunks of views.
+
+    The views include voxel centres exactly on pixel edges, where the last bit of a coordinate decides the pixel;
+    on CPUs with wide vector units that bit can depend on how many views one call projects together, so the
+    reference takes its coordinates from the same geometry calls as the scores and checks everything after them.
+    """
+    centres = voxel_centers(res, torch.float64).reshape(-1, 3)
+    step = projection._TABLE_VIEW_CHUNK
+    chunks = [views[s : s + step].double() for s in range(0, len(views), step)]
+    return torch.cat([orthographic_pixel_coords(centres, c, res, DEFAULT_HALF_EXTENT) for c in chunks])
+
+
+def first_hit_voxels(occupied: np.ndarray, coords: list) -> dict[int, int]:
     """``{pixel: voxel}`` of one view: each occupied voxel claims its centre's pixel if it is nearer than the
     current claimant (by more than 1e-9; flat order, so ties keep the lowest index). Image ``R x R`` pixels."""
     res = occupied.shape[0]
-    centres = voxel_centers(res, torch.float64).reshape(-1, 3)
-    coords = orthographic_pixel_coords(centres, view[None].double(), res, DEFAULT_HALF_EXTENT)[0].tolist()
     nearest: dict[int, tuple[float, int]] = {}
     for n, is_occupied in enumerate(occupied.reshape(-1).tolist()):
         if not is_occupied:
@@ -48,10 +59,11 @@ def reference_scores(
     dtype = values.dtype
     np_dtype = {torch.float32: np.float32, torch.float64: np.float64}[dtype]
     scores = torch.zeros(occupied.shape[0], views.shape[0], dtype=dtype)
+    coords = pixel_coords(views, occupied.shape[1]).tolist()
     for b in range(occupied.shape[0]):
         flat_values = values[b].reshape(-1).numpy()
         for v in range(views.shape[0]):
-            hits = first_hit_voxels(occupied[b].numpy(), views[v])
+            hits = first_hit_voxels(occupied[b].numpy(), coords[v])
             total = np_dtype(0)
             for pixel in sorted(hits):  # one addition at a time, in pixel order
                 total = np_dtype(total + flat_values[hits[pixel]])
