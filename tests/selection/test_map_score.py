@@ -67,7 +67,9 @@ def _context(bad: torch.Tensor, k: int, categories: list[str]) -> tuple[Selectio
         SynthesisRequest(f"obj{b}", c, np.zeros((0, 2, 2, 4), np.uint8), torch.zeros(0, 2), torch.zeros(0, 2))
         for b, c in enumerate(categories)
     ]
-    return SelectionContext(model, ViewpointSynthesizer(), requests, viewpoint_transform, None, torch.device("cpu")), model
+    return SelectionContext(
+        model, ViewpointSynthesizer(), requests, viewpoint_transform, None, torch.device("cpu")
+    ), model
 
 
 def _bin_losses(bad: torch.Tensor, k: int) -> torch.Tensor:

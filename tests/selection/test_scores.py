@@ -124,7 +124,9 @@ def test_score_presets_and_overrides():
     assert (released.mode, released.mask, released.reduction) == ("soft", "gt", "mean")
     custom = ErrorGuidedSelector(score="released", mask="none", reduction="sum")
     assert (custom.mode, custom.mask, custom.reduction) == ("soft", None, "sum")
-    with pytest.raises(ValueError, match="`score` must be one of 'paper', 'released', 'visible', 'input', 'map', got 'area'"):
+    with pytest.raises(
+        ValueError, match="`score` must be one of 'paper', 'released', 'visible', 'input', 'map', got 'area'"
+    ):
         ErrorGuidedSelector(score="area")
     with pytest.raises(ValueError, match="`mask` and `reduction` do not apply to score='visible'"):
         ErrorGuidedSelector(score="visible", reduction="mean")
