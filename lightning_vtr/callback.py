@@ -38,14 +38,14 @@ from lightning_vtr.utils.validation import check_choice, check_float, check_int,
 __all__ = ["DEFAULT_SEARCH_FRACTION", "DEFAULT_SELECTOR_KWARGS", "RECORD_VERSION", "ErrorGuidedViewAugmentation"]
 
 _STATE_VERSION = 1
-#: Arguments of the default selector, ``ErrorGuidedSelector(**DEFAULT_SELECTOR_KWARGS)``: the side-aware
-#: ``visible`` score, bins within 30 degrees of a chosen one (or its antipode) suppressed, bins sampled by
-#: solid angle x score at temperature 10 (the report's ``visible_tau10_search`` row).
 DEFAULT_SELECTOR_KWARGS: dict[str, Any] = {"score": "visible", "min_separation": 30.0, "temperature": 10.0}
-#: ``search_fraction`` with the default selector: the released code's search, 35 % of the training objects.
+"""Arguments of the default selector, ``ErrorGuidedSelector(**DEFAULT_SELECTOR_KWARGS)``: the side-aware
+``visible`` score, bins within 30 degrees of a chosen one (or its antipode) suppressed, bins sampled by
+solid angle x score at temperature 10 (the report's ``visible_tau10_search`` row)."""
 DEFAULT_SEARCH_FRACTION = 0.35
-#: The ``version`` of the per-selection records (``<log dir>/vtr_selection/*.json``).
+"""``search_fraction`` with the default selector: the released code's search, 35 % of the training objects."""
 RECORD_VERSION = 1
+"""The ``version`` of the per-selection records (``<log dir>/vtr_selection/*.json``)."""
 _NOTHING_GENERATED = -2
 # Returning logits instead of probabilities is the usual way a model breaks the protocol.
 _PROBABILITIES_HINT = (

@@ -17,10 +17,10 @@ import os
 
 __all__ = ["EXIT_DATA", "EXIT_USAGE", "EXPECTED_ERRORS", "DataError", "UsageError", "exit_status", "one_line"]
 
-#: Exit status of a usage error (argparse's own).
 EXIT_USAGE = 2
-#: Exit status of a data error: an input file that is not what it must be, or a write the system refused.
+"""Exit status of a usage error (argparse's own)."""
 EXIT_DATA = 1
+"""Exit status of a data error: an input file that is not what it must be, or a write the system refused."""
 
 
 class UsageError(ValueError):
@@ -31,8 +31,8 @@ class DataError(ValueError):
     """A file the command line names is not what it must be (exit status 1)."""
 
 
-#: The exceptions ``lightning-vtr`` answers with one line instead of a traceback.
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, RuntimeError, EOFError)
+"""The exceptions ``lightning-vtr`` answers with one line instead of a traceback."""
 
 
 def _image_error() -> tuple[type[BaseException], ...]:

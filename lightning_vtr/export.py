@@ -43,8 +43,8 @@ __all__ = [
     "write_summary",
 ]
 
-#: Mesh file formats :func:`export_mesh` writes (trimesh's exporters), by file suffix.
 MESH_FORMATS = ("obj", "ply", "stl", "off", "glb")
+"""Mesh file formats :func:`export_mesh` writes (trimesh's exporters), by file suffix."""
 
 
 def _binary(voxels: Any, threshold: float) -> np.ndarray:

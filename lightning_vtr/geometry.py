@@ -58,11 +58,12 @@ __all__ = [
 ]
 
 DEFAULT_RESOLUTION = 32
-#: Radius of the sphere around the object cube ``[-0.5, 0.5]^3``, ``sqrt(3) / 2`` world units. An
-#: orthographic view whose square image reaches this far from the centre keeps the whole cube in frame
-#: from every viewpoint, so it is the default half-extent of the error projection, the differentiable
-#: projection and the orthographic renderer (which also sizes its depth range with it).
+"""Side ``R`` of the voxel grids (``R x R x R``), as in ShapeNet-VTR and 3D-R2N2."""
 DEFAULT_HALF_EXTENT = math.sqrt(3.0) / 2.0
+"""Radius of the sphere around the object cube ``[-0.5, 0.5]^3``, ``sqrt(3) / 2`` world units. An
+orthographic view whose square image reaches this far from the centre keeps the whole cube in frame
+from every viewpoint, so it is the default half-extent of the error projection, the differentiable
+projection and the orthographic renderer (which also sizes its depth range with it)."""
 
 
 def _as_tensor(x: Tensor | np.ndarray | float | list, dtype: torch.dtype | None = None) -> Tensor:

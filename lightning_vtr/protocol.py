@@ -33,12 +33,12 @@ __all__ = [
     "check_reconstruction_model",
 ]
 
-#: The paper's three view sets, in table order: training views (a fixed elevation) and the two test sets.
 VIEW_SETS: tuple[str, ...] = ("aligned", "hemispherical", "spherical")
+"""The paper's three view sets, in table order: training views (a fixed elevation) and the two test sets."""
 
-#: The occupancy threshold: a voxel predicted with probability ``>= DEFAULT_THRESHOLD`` is occupied. The
-#: default binarisation of error volumes, selections, IoU/F-score, exports and figures (the paper's tables use it).
 DEFAULT_THRESHOLD: float = 0.4
+"""The occupancy threshold: a voxel predicted with probability ``>= DEFAULT_THRESHOLD`` is occupied. The
+default binarisation of error volumes, selections, IoU/F-score, exports and figures (the paper's tables use it)."""
 
 
 @runtime_checkable

@@ -39,13 +39,13 @@ __all__ = [
     "get_renderer",
 ]
 
-#: Vertical field of view (degrees) of Zero-1-to-3's Objaverse renders (35 mm lens, 32 mm sensor),
-#: so rendered views resemble what the Zero-1-to-3 synthesizer was trained on.
 DEFAULT_YFOV_DEG = math.degrees(2.0 * math.atan(16.0 / 35.0))  # ~49.13
-#: Camera distance (world units): the top of Zero-1-to-3's range [1.5, 2.2]. At this distance the
-#: bounding sphere of ``[-0.5, 0.5]^3`` (radius sqrt(3)/2) subtends 23.2 degrees of the 24.6-degree
-#: half field of view, so a normalised object is in frame from every viewpoint.
+"""Vertical field of view (degrees) of Zero-1-to-3's Objaverse renders (35 mm lens, 32 mm sensor),
+so rendered views resemble what the Zero-1-to-3 synthesizer was trained on."""
 DEFAULT_DISTANCE = 2.2
+"""Camera distance (world units): the top of Zero-1-to-3's range [1.5, 2.2]. At this distance the
+bounding sphere of ``[-0.5, 0.5]^3`` (radius sqrt(3)/2) subtends 23.2 degrees of the 24.6-degree
+half field of view, so a normalised object is in frame from every viewpoint."""
 # DEFAULT_HALF_EXTENT (re-exported): half the side (world units) of the square an orthographic view covers,
 # the radius of the bounding sphere of ``[-0.5, 0.5]^3``; defined once in lightning_vtr.geometry so the
 # renderer and the error projection cannot drift apart.

@@ -52,17 +52,23 @@ __all__ = [
     "voxel_mesh",
 ]
 
-#: Labels of :func:`error_labels`: neither grid, both (correct), prediction only, ground truth only.
-EMPTY, CORRECT, FALSE_POSITIVE, FALSE_NEGATIVE = 0, 1, 2, 3
-#: RGB (0-255) of each error label; vermillion and blue stay apart for the common colour-vision deficiencies.
+EMPTY = 0
+"""Label of :func:`error_labels` for a voxel in neither grid."""
+CORRECT = 1
+"""Label of :func:`error_labels` for a voxel in both grids."""
+FALSE_POSITIVE = 2
+"""Label of :func:`error_labels` for a voxel in the prediction only."""
+FALSE_NEGATIVE = 3
+"""Label of :func:`error_labels` for a voxel in the ground truth only."""
 ERROR_COLORS: Mapping[int, tuple[int, int, int]] = MappingProxyType(
     {CORRECT: (185, 185, 185), FALSE_POSITIVE: (213, 94, 0), FALSE_NEGATIVE: (0, 114, 178)}
 )
-#: RGB of an occupied voxel in plain pictures (prediction and ground truth alike, so they compare).
+"""RGB (0-255) of each error label; vermillion and blue stay apart for the common colour-vision deficiencies."""
 VOXEL_COLOR = (150, 172, 204)
-#: Viewpoints ``(yaw, pitch)`` in degrees of the prediction / ground truth / error pictures of a sheet:
-#: two three-quarter views from opposite sides, 30 degrees up (the Aligned elevation).
+"""RGB of an occupied voxel in plain pictures (prediction and ground truth alike, so they compare)."""
 DISPLAY_VIEWPOINTS: tuple[tuple[float, float], ...] = ((-45.0, 30.0), (135.0, 30.0))
+"""Viewpoints ``(yaw, pitch)`` in degrees of the prediction / ground truth / error pictures of a sheet:
+two three-quarter views from opposite sides, 30 degrees up (the Aligned elevation)."""
 
 _SILHOUETTE = (228, 228, 228)  # projection pixels that see the object but no error
 _ERROR_LEGEND = (

@@ -410,8 +410,6 @@ class ImageRecipe:
         return ImageTransform(image_size, self.background, self.normalize, crop=self.crop)
 
 
-#: The named recipes. ``"plain"``: white background, ImageNet normalisation, nothing else. ``"pix2vox"``:
-#: Pix2Vox++'s published recipe; ``"lrgt"``: LRGT's (both with background 240 outside training).
 IMAGE_RECIPES: Mapping[str, ImageRecipe] = MappingProxyType(
     {
         "plain": ImageRecipe(),
@@ -436,6 +434,8 @@ IMAGE_RECIPES: Mapping[str, ImageRecipe] = MappingProxyType(
         ),
     }
 )
+"""The named recipes. ``"plain"``: white background, ImageNet normalisation, nothing else. ``"pix2vox"``:
+Pix2Vox++'s published recipe; ``"lrgt"``: LRGT's (both with background 240 outside training)."""
 
 
 # ---------------------------------------------------------------------------------------------- the transform

@@ -432,7 +432,8 @@ def resolved_strategy(
 
     Args:
         name: a name in ``variants``.
-        selector_kwargs, callback_kwargs: as for :func:`make_strategy`.
+        selector_kwargs: as for :func:`make_strategy`.
+        callback_kwargs: as for :func:`make_strategy`.
         variants: the named strategies; default :data:`VARIANTS`.
 
     Returns:

@@ -31,14 +31,14 @@ __all__ = [
     "voxel_iou_best",
 ]
 
-#: The thresholds of Pix2Vox++'s test protocol (and VTR's best-threshold IoU); the paper's tables use 0.4.
 DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5)
+"""The thresholds of Pix2Vox++'s test protocol (and VTR's best-threshold IoU); the paper's tables use 0.4."""
 
-#: Where the F-score's surface lies: What3D's iso-0 surface scaled by 1 / (R + 1), or the cell boundary in the unit cube.
 FSCORE_CONVENTIONS: tuple[str, ...] = ("community", "centred")
+"""Where the F-score's surface lies: What3D's iso-0 surface scaled by 1 / (R + 1), or the cell boundary in the unit cube."""
 
-#: The default convention, so that F-scores sit beside published tables (LegoFormer, LRGT).
 DEFAULT_FSCORE_CONVENTION = "community"
+"""The default convention, so that F-scores sit beside published tables (LegoFormer, LRGT)."""
 
 
 def threshold_key(threshold: float) -> str:

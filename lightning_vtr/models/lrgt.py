@@ -154,11 +154,6 @@ class LRGTSpec:
         return self.query_grid * 2 ** len(self.upsample_channels)
 
 
-#: The named presets. ``paper``: the published model (DeiT-B distilled, 224 px, 14x14 tokens, 129.8 M
-#: parameters). ``tiny``: the same architecture at small widths, 64 px input, sized to train on a CPU; 8x8
-#: tokens with stride 4 keep groups of 4 tokens per view, and the decoder's stages have widths 16, 32 and 64
-#: (as the paper's 96, 96, 192 follow from 96, 12, 3 channels). Its decoder has one attention head: the cost
-#: of attention over the 512 tokens of a stage grows with the number of heads, whatever the width.
 LRGT_PRESETS: dict[str, LRGTSpec] = {
     "paper": LRGTSpec(
         image_size=224,
@@ -195,6 +190,11 @@ LRGT_PRESETS: dict[str, LRGTSpec] = {
         upsample_channels=(16, 4, 1),
     ),
 }
+"""The named presets. ``paper``: the published model (DeiT-B distilled, 224 px, 14x14 tokens, 129.8 M
+parameters). ``tiny``: the same architecture at small widths, 64 px input, sized to train on a CPU; 8x8
+tokens with stride 4 keep groups of 4 tokens per view, and the decoder's stages have widths 16, 32 and 64
+(as the paper's 96, 96, 192 follow from 96, 12, 3 channels). Its decoder has one attention head: the cost
+of attention over the 512 tokens of a stage grows with the number of heads, whatever the width."""
 
 
 def _architecture_hparams(spec: LRGTSpec) -> dict[str, object]:

@@ -86,9 +86,6 @@ class Pix2VoxSpec:
         return self.image_size // (self.backbone_stride * 4)
 
 
-#: The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
-#: ``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
-#: initialisation and ``BCE(refined)``.
 PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
     "paper": Pix2VoxSpec(
         image_size=224,
@@ -111,6 +108,9 @@ PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
         two_stage_loss=False,
     ),
 }
+"""The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
+``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
+initialisation and ``BCE(refined)``."""
 
 _RESOLUTION = 32  # four doublings from the 2^3 seed volume
 _INITS = ("reference", "torch")

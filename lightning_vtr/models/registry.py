@@ -33,8 +33,8 @@ __all__ = [
     "model_class",
 ]
 
-#: Model name -> class: the names ``--model`` and the experiments accept (each class takes a ``preset``).
 MODELS: dict[str, type[Pix2VoxPlusPlus] | type[LRGT]] = {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}
+"""Model name -> class: the names ``--model`` and the experiments accept (each class takes a ``preset``)."""
 
 #: The keys every Lightning checkpoint holds.
 _LIGHTNING_KEYS = ("state_dict", "pytorch-lightning_version")

@@ -33,12 +33,12 @@ __all__ = [
     "weights_cache_dir",
 ]
 
-#: What ``"imagenet"`` means for each backbone ``kind``: the URLs torchvision (``ResNet50_Weights.IMAGENET1K_V1``)
-#: and the DeiT release (``deit_base_distilled_patch16_224``) download their weights from.
 IMAGENET_WEIGHTS: dict[str, str] = {
     "resnet50": "https://download.pytorch.org/models/resnet50-0676ba61.pth",
     "deit_base_distilled": "https://dl.fbaipublicfiles.com/deit/deit_base_distilled_patch16_224-df68dfff.pth",
 }
+"""What ``"imagenet"`` means for each backbone ``kind``: the URLs torchvision (``ResNet50_Weights.IMAGENET1K_V1``)
+and the DeiT release (``deit_base_distilled_patch16_224``) download their weights from."""
 
 _URL_SCHEMES = ("http", "https", "file")
 # torch.hub's naming convention: "<name>-<first hex digits of the file's SHA-256>.<ext>".

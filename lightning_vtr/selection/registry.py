@@ -14,8 +14,6 @@ from lightning_vtr.utils.validation import check_choice
 
 __all__ = ["SELECTORS", "SELECTOR_PRESETS", "make_selector"]
 
-#: Strategy name -> selector class, in the row order of the paper's Table 1 ("none", no augmentation,
-#: is the harness's baseline and has no selector).
 SELECTORS: dict[str, type[ViewSelector]] = {
     "nature": NatureSelector,
     "random": RandomSelector,
@@ -23,6 +21,8 @@ SELECTORS: dict[str, type[ViewSelector]] = {
     "mvtn": MVTNSelector,
     "error_guided": ErrorGuidedSelector,
 }
+"""Strategy name -> selector class, in the row order of the paper's Table 1 ("none", no augmentation,
+is the harness's baseline and has no selector)."""
 
 #: Named settings of a selector: name -> (a name in :data:`SELECTORS`, its arguments). ``"paper"`` is the
 #: paper's exact rule: binary error summed over the first-hit map, the hard top n bins, no suppression of
