@@ -1,14 +1,19 @@
-"""MkDocs hook: fill ``cli.md``'s marker with every sub-command's options, read from the parser itself.
+"""MkDocs hook: fill ``cli.md``'s marker with every sub-command's options, and fix the changelog's links.
 
 ``mkdocs.yml`` names this file under ``hooks:``. The marker ``<!-- cli-options -->`` in ``docs/cli.md`` is
 replaced by one section per sub-command of :func:`lightning_vtr.cli.build_parser`, holding its ``--help``
 text, so the page always lists the options the installed command accepts.
+
+``docs/changelog.md`` includes the repository's ``CHANGELOG.md``, whose links into the docs start with ``docs/``
+so that they work where the file lives; on the site the page already sits in ``docs``, so the prefix goes.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
+from pathlib import Path
 
 MARKER = "<!-- cli-options -->"
 
@@ -30,4 +35,9 @@ def cli_reference() -> str:
 def on_page_markdown(markdown: str, page, config, files) -> str:
     if MARKER in markdown:
         markdown = markdown.replace(MARKER, cli_reference())
+    if page.file.src_uri == "changelog.md":
+        # include the changelog here rather than through the snippets extension, which runs after this hook
+        changelog = Path(config["docs_dir"]).parent / "CHANGELOG.md"
+        text = re.sub(r"\]\(docs/", "](", changelog.read_text(encoding="utf-8"))
+        markdown = markdown.replace('--8<-- "CHANGELOG.md"', text)
     return markdown

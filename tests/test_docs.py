@@ -1,10 +1,12 @@
-"""The README stays short, and every page under docs/ is in mkdocs.yml's nav (and every nav entry exists).
+"""The README stays short, every page under docs/ is in mkdocs.yml's nav (and every nav entry exists), and the
+changelog's links into the docs resolve.
 
-No site is built here: the checks read README.md, mkdocs.yml and the docs folder only.
+No site is built here: the checks read README.md, CHANGELOG.md, mkdocs.yml and the docs folder only.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import yaml
@@ -53,3 +55,33 @@ def test_every_nav_entry_exists():
     missing = [page for page in nav if not (DOCS / page).is_file()]
     assert not missing, f"mkdocs.yml's nav names pages that do not exist under docs/: {missing}"
     assert len(nav) == len(set(nav)), "a page appears twice in mkdocs.yml's nav"
+
+
+def _slug(heading: str) -> str:
+    """The anchor MkDocs (Python-Markdown's toc) gives a heading: lower case, punctuation dropped, spaces to -."""
+    text = re.sub(r"[^\w\s-]", "", heading.strip().lower())
+    return re.sub(r"[\s]+", "-", text)
+
+
+def test_the_changelogs_links_into_the_docs_resolve_in_the_repository_and_on_the_site():
+    import importlib.util
+    from types import SimpleNamespace
+
+    text = (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\((docs/[^)#]+)(?:#([^)]+))?\)", text)
+    assert links, "the changelog links its evidence into the docs"
+    for path, anchor in links:
+        target = ROOT / path
+        assert target.is_file(), f"CHANGELOG.md links {path}, which does not exist"
+        if anchor:
+            headings = re.findall(r"^#+ (.+)$", target.read_text(encoding="utf-8"), flags=re.M)
+            assert anchor in {_slug(h) for h in headings}, f"{path} has no heading for #{anchor}"
+    # the site's changelog page includes the file with the links made relative to docs/
+    spec = importlib.util.spec_from_file_location("gen_cli", DOCS / "gen_cli.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    page = SimpleNamespace(file=SimpleNamespace(src_uri="changelog.md"))
+    source = (DOCS / "changelog.md").read_text(encoding="utf-8")
+    rendered = hook.on_page_markdown(source, page, {"docs_dir": str(DOCS)}, None)
+    assert "](docs/" not in rendered and "--8<--" not in rendered
+    assert f"]({links[0][0].removeprefix('docs/')}" in rendered
