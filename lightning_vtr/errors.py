@@ -44,7 +44,28 @@ def _image_error() -> tuple[type[BaseException], ...]:
 
 
 def exit_status(err: BaseException) -> int:
-    """:data:`EXIT_USAGE` for errors of the command line, :data:`EXIT_DATA` for errors of the data or the system."""
+    """:data:`EXIT_USAGE` for errors of the command line, :data:`EXIT_DATA` for errors of the data or the system.
+
+    An exception class with an int ``exit_status`` attribute (e.g.
+    :class:`~lightning_vtr.data.format.DatasetFormatError`) gives that status. Otherwise :class:`UsageError`, a
+    missing file or a path of the wrong kind (``FileNotFoundError``, ``NotADirectoryError``, ``IsADirectoryError``)
+    and a plain ``ValueError`` (an argument check) are usage errors; :class:`DataError`, ``RuntimeError``,
+    ``EOFError``, a picture PIL cannot identify and any other ``OSError`` (permission, full disk, I/O) are data
+    errors.
+
+    Args:
+        err: the exception caught.
+
+    Returns:
+        The process exit status: :data:`EXIT_USAGE` (2) or :data:`EXIT_DATA` (1), unless the exception's class
+        names its own.
+
+    Example:
+        >>> exit_status(UsageError("`--views` must be an int >= 1, got 0")), exit_status(DataError("truncated"))
+        (2, 1)
+        >>> exit_status(FileNotFoundError(2, "No such file or directory", "model.ckpt"))
+        2
+    """
     own = getattr(type(err), "exit_status", None)  # a class that says, e.g. data.format.DatasetFormatError
     if isinstance(own, int):
         return own
@@ -60,8 +81,25 @@ def exit_status(err: BaseException) -> int:
 
 
 def one_line(err: BaseException) -> str:
-    """The error as one line: an ``OSError`` from the system names the file, what was expected and what
-    was found; any other message has its lines joined."""
+    """The error as one line, the message ``lightning-vtr`` prints instead of a traceback.
+
+    An ``OSError`` from the system names the file, what was expected and what was found; any other message has
+    its lines joined. A ``KeyError`` or an empty message is prefixed with the exception's class name.
+
+    Args:
+        err: the exception caught.
+
+    Returns:
+        The message on one line, never empty.
+
+    Example:
+        >>> one_line(ValueError("first line\\n  second line"))
+        'first line second line'
+        >>> one_line(FileNotFoundError(2, "No such file or directory", "model.ckpt"))
+        "'model.ckpt': No such file or directory"
+        >>> one_line(KeyError("images"))
+        "KeyError: 'images'"
+    """
     if isinstance(err, OSError) and err.errno is not None and err.filename is not None and err.strerror:
         where = repr(os.fsdecode(err.filename))
         if err.errno == errno.ENOSPC:

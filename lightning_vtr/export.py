@@ -67,6 +67,17 @@ def voxels_to_mesh(voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> trimesh
 
     Returns:
         a :class:`trimesh.Trimesh` (no faces when no cell reaches ``threshold``).
+
+    Raises:
+        TypeError: ``voxels`` is not a tensor or array, or ``threshold`` not a number.
+        ValueError: ``voxels`` is not ``(R, R, R)`` with ``R >= 1``, or ``threshold`` is not in ``(0, 1)``.
+
+    Example:
+        >>> mesh = voxels_to_mesh(np.ones((2, 2, 2), dtype=bool))  # a full grid: its surface fills the cube
+        >>> mesh.bounds.tolist(), mesh.is_watertight
+        ([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]], True)
+        >>> len(voxels_to_mesh(np.zeros((2, 2, 2))).faces)
+        0
     """
     from skimage.measure import marching_cubes
 
@@ -86,8 +97,27 @@ def voxels_to_mesh(voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> trimesh
 
 
 def export_binvox(path: str | os.PathLike, voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> Path:
-    """Write ``voxels >= threshold`` (a bool grid as is) as a binvox file (:func:`lightning_vtr.data.binvox.write_binvox`:
-    ``translate -0.5``, ``scale 1``, +Z up); returns the path."""
+    """Write ``voxels >= threshold`` (a bool grid as is) as a binvox file; returns the path.
+
+    The file is written atomically by :func:`lightning_vtr.data.binvox.write_binvox` (``translate -0.5``,
+    ``scale 1``, +Z up), so its voxel centres are those of :func:`lightning_vtr.geometry.voxel_centers`.
+
+    Args:
+        path: the file to write; its folder is created.
+        voxels: ``(R, R, R)`` occupancy probabilities in ``[0, 1]`` (tensor or array), or a bool grid.
+        threshold: a voxel with probability ``>= threshold`` is occupied (ignored for a bool grid).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        TypeError: ``voxels`` is not a tensor or array, or ``threshold`` not a number.
+        ValueError: ``voxels`` is not ``(R, R, R)`` with ``R >= 1``, or ``threshold`` is not in ``[0, 1]``.
+
+    Example::
+
+        export_binvox("predictions/chair.binvox", model.predict_voxels(images)[0])
+    """
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -96,8 +126,29 @@ def export_binvox(path: str | os.PathLike, voxels: Any, threshold: float = DEFAU
 
 
 def export_mesh(path: str | os.PathLike, voxels: Any, threshold: float = DEFAULT_THRESHOLD) -> Path:
-    """Write the marching-cubes surface of :func:`voxels_to_mesh` to ``path``; the suffix picks the format
-    (one of :data:`MESH_FORMATS`). An empty prediction writes a file with no faces. Returns the path."""
+    """Write the marching-cubes surface of :func:`voxels_to_mesh` to ``path``; returns the path.
+
+    The suffix picks the format (one of :data:`MESH_FORMATS`). An empty prediction writes a file with no faces.
+    The file is written atomically.
+
+    Args:
+        path: the file to write, ending in ``.obj``, ``.ply``, ``.stl``, ``.off`` or ``.glb``; its folder is
+            created.
+        voxels: ``(R, R, R)`` occupancy probabilities in ``[0, 1]`` (tensor or array), or a bool grid.
+        threshold: the iso-level of a float grid, in ``(0, 1)`` (ignored for a bool grid).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`; the mesh is in world units, inside ``[-0.5, 0.5]^3``.
+
+    Raises:
+        TypeError: ``voxels`` is not a tensor or array, or ``threshold`` not a number.
+        ValueError: ``path`` has another suffix, ``voxels`` is not ``(R, R, R)`` with ``R >= 1``, or ``threshold``
+            is not in ``(0, 1)``.
+
+    Example::
+
+        export_mesh("predictions/chair.ply", model.predict_voxels(images)[0], threshold=0.4)
+    """
     path = Path(path)
     if path.suffix.lstrip(".").lower() not in MESH_FORMATS:
         raise ValueError(f"`path` must end in one of {', '.join('.' + f for f in MESH_FORMATS)}, got {path.name!r}")
@@ -109,7 +160,24 @@ def export_mesh(path: str | os.PathLike, voxels: Any, threshold: float = DEFAULT
 
 
 def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write an ``(H, W, 3)`` uint8 picture as PNG, atomically; returns the path."""
+    """Write an ``(H, W, 3)`` uint8 picture as PNG, atomically; returns the path.
+
+    Args:
+        path: the file to write; its folder is created.
+        image: ``(H, W, 3)`` uint8 RGB picture.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ValueError: ``image`` is not an ``(H, W, 3)`` uint8 array.
+
+    Example::
+
+        from lightning_vtr.visualize import object_sheet
+
+        save_png("predictions/chair/sheet.png", object_sheet(voxels, target))
+    """
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[-1] != 3 or image.dtype != np.uint8:
         raise ValueError(f"`image` must be an (H, W, 3) uint8 array, got {image.shape} {image.dtype}")
@@ -142,6 +210,16 @@ def export_prediction(
 
     Returns:
         ``{"binvox": path, "mesh": path, "sheet": path}`` for the files written.
+
+    Raises:
+        TypeError: ``voxels`` is not a tensor or array, or ``threshold`` not a number.
+        ValueError: ``voxels`` is not ``(R, R, R)``, ``threshold`` is not in ``[0, 1]`` (``(0, 1)`` with a mesh),
+            an unknown ``mesh_format``, or a ``sheet`` that is not ``(H, W, 3)`` uint8.
+
+    Example::
+
+        paths = export_prediction("predictions/chair/1a2b", model.predict_voxels(images)[0], mesh_format="ply")
+        paths["mesh"]  # Path('predictions/chair/1a2b/prediction.ply')
     """
     directory = Path(directory)
     paths = {"binvox": export_binvox(directory / f"{name}.binvox", voxels, threshold)}
@@ -200,6 +278,11 @@ def write_index_html(
 
     Returns:
         the page's path.
+
+    Example::
+
+        files = export_prediction("predictions/chair/1a2b", voxels, sheet=sheet)
+        write_index_html("predictions", [{"name": "chair/1a2b", "files": files, "facts": {"IoU@0.4": 0.61}}])
     """
     root = Path(directory)
     sections = []
@@ -233,7 +316,7 @@ class VoxelPredictionWriter(BasePredictionWriter):
     a dict with ``"voxels"`` works too). From the batch it reads ``images`` (for the sheet's input row),
     and, when present, ``voxels`` (ground truth: the sheet gets its error rows and the facts the IoU),
     ``viewpoints``, ``category``, ``object_id`` and ``view_set`` (the folder is
-    ``<output_dir>/<view_set>/<category>/<object_id>``; without names ``object_<index>``).
+    ``<output_dir>/<view_set>/<category>/<object_id>``; without names ``object_<dataloader_idx>_<index>``).
 
     Args:
         output_dir: where to write.
@@ -321,14 +404,56 @@ class VoxelPredictionWriter(BasePredictionWriter):
 
 
 def describe_object(batch: Mapping[str, Any], i: int, index: int, dataloader_idx: int = 0) -> dict[str, Any]:
-    """Name (``<view_set>/<category>/<object_id>``, or ``object_<index>``) of sample ``i`` of a batch."""
+    """Name (``<view_set>/<category>/<object_id>``, or ``object_<dataloader_idx>_<index>``) of sample ``i`` of a batch.
+
+    The name is also the sample's folder under the writer's output directory.
+
+    Args:
+        batch: the batch: a mapping whose ``"view_set"``, ``"category"`` and ``"object_id"`` entries, when
+            present, are sequences of ``B`` names.
+        i: position of the sample in the batch.
+        index: the sample's index in its dataloader, used when the batch has no ``"object_id"``.
+        dataloader_idx: index of the dataloader, used with ``index``.
+
+    Returns:
+        ``{"name": name}``: the names present joined with ``/``, or ``object_<dataloader_idx>_<index>`` (index
+        padded to five digits) without an ``"object_id"``.
+
+    Example:
+        >>> describe_object({"category": ["chair"], "object_id": ["1a2b"]}, 0, 7)
+        {'name': 'chair/1a2b'}
+        >>> describe_object({"images": None}, 0, 7)
+        {'name': 'object_0_00007'}
+    """
     parts = [str(batch[key][i]) for key in ("view_set", "category", "object_id") if key in batch]
     name = "/".join(parts) if "object_id" in batch else f"object_{dataloader_idx}_{index:05d}"
     return {"name": name}
 
 
 def prediction_facts(voxels: Any, target: Any | None, threshold: float) -> dict[str, Any]:
-    """What the page and ``predictions.json`` say about a prediction: occupied voxels, and IoU with a target."""
+    """What the page and ``predictions.json`` say about a prediction: occupied voxels, and IoU with a target.
+
+    Args:
+        voxels: ``(R, R, R)`` predicted occupancy probabilities (tensor or array), or a bool grid.
+        target: ``(R, R, R)`` ground truth in {0, 1} (binarised at 0.5; a bool grid as is), or ``None``.
+        threshold: a predicted voxel with probability ``>= threshold`` is occupied.
+
+    Returns:
+        ``{"occupied voxels": int}`` and, with a ``target``, ``"true voxels"`` (int) and ``"IoU@<threshold>"``
+        (float in ``[0, 1]``; 1.0 when both grids are empty).
+
+    Raises:
+        TypeError: ``voxels`` or ``target`` is not a tensor or array.
+        ValueError: ``voxels`` or ``target`` is not ``(R, R, R)`` with ``R >= 1``.
+
+    Example:
+        >>> predicted = np.zeros((2, 2, 2))
+        >>> predicted[0] = 0.9
+        >>> truth = np.zeros((2, 2, 2), dtype=bool)
+        >>> truth[:, 0] = True
+        >>> prediction_facts(predicted, truth, 0.4)
+        {'occupied voxels': 4, 'true voxels': 4, 'IoU@0.4': 0.3333333333333333}
+    """
     occupied = _binary(voxels, threshold)
     facts: dict[str, Any] = {"occupied voxels": int(occupied.sum())}
     if target is not None:
@@ -340,8 +465,26 @@ def prediction_facts(voxels: Any, target: Any | None, threshold: float) -> dict[
 
 
 def write_summary(directory: str | os.PathLike, entries: Sequence[Mapping[str, Any]], **page: Any) -> dict[str, Path]:
-    """Write ``index.html`` (:func:`write_index_html`) and ``predictions.json`` (names, facts, relative file
-    paths) for the exported objects; returns both paths."""
+    """Write ``index.html`` (:func:`write_index_html`) and ``predictions.json`` for the exported objects.
+
+    ``predictions.json`` lists every entry's name, facts and files (paths relative to ``directory``). The page's
+    summary line defaults to the number of objects and, when their facts hold one, the mean IoU over those with
+    ground truth.
+
+    Args:
+        directory: the output folder the entries' files lie under (created).
+        entries: one mapping per object, as :func:`write_index_html` takes them: ``"name"``, ``"files"`` and
+            ``"facts"``.
+        **page: keyword arguments of :func:`write_index_html` (``title``, ``summary``).
+
+    Returns:
+        ``{"index": path of index.html, "summary": path of predictions.json}``.
+
+    Example::
+
+        entries = [{"name": "chair/1a2b", "files": export_prediction("predictions/chair/1a2b", voxels)}]
+        write_summary("predictions", entries, title="Chairs")  # predictions/index.html, predictions/predictions.json
+    """
     root = Path(directory)
     ious = {k: v for e in entries for k, v in e.get("facts", {}).items() if k.startswith("IoU@")}
     summary = f"{len(entries)} objects"

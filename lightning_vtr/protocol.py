@@ -49,6 +49,16 @@ class ReconstructionModel(Protocol):
         image_size: the square input size ``H = W`` the model expects, in pixels.
         num_views: the number of input views per sample it is trained with.
         voxel_resolution: ``R`` of its ``(B, R, R, R)`` output.
+
+    Example:
+        >>> class Constant:  # no base class needed
+        ...     image_size, num_views, voxel_resolution = 224, 3, 32
+        ...     def predict_voxels(self, images):
+        ...         return images.new_full((len(images), 32, 32, 32), 0.5)
+        >>> isinstance(Constant(), ReconstructionModel)
+        True
+        >>> isinstance(object(), ReconstructionModel)
+        False
     """
 
     image_size: int
@@ -61,7 +71,21 @@ class ReconstructionModel(Protocol):
 
 
 def check_reconstruction_model(model: object) -> None:
-    """Raise ``TypeError`` naming what is missing if ``model`` does not satisfy :class:`ReconstructionModel`."""
+    """Raise ``TypeError`` naming what is missing if ``model`` does not satisfy :class:`ReconstructionModel`.
+
+    Args:
+        model: the model to check (normally a ``LightningModule``).
+
+    Raises:
+        TypeError: naming every missing attribute at once, and ``predict_voxels`` when it is missing or not
+            callable.
+
+    Example:
+        >>> check_reconstruction_model(object())  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        TypeError: object does not satisfy lightning_vtr.ReconstructionModel: missing image_size, num_views, ...
+    """
     missing = [name for name in ("image_size", "num_views", "voxel_resolution") if not hasattr(model, name)]
     if not callable(getattr(model, "predict_voxels", None)):
         missing.append("predict_voxels(images) -> (B, R, R, R)")

@@ -288,6 +288,24 @@ def get_renderer(image_size: int = 256, **kwargs: Any) -> Renderer:
 
     All renderers share one GL context, so asking for several sizes or cameras costs no new context.
     Keyword arguments are those of :class:`Renderer`.
+
+    Args:
+        image_size: output height = width, in pixels.
+        **kwargs: the other (keyword) arguments of :class:`Renderer`, e.g. ``camera="orthographic"``.
+
+    Returns:
+        The cached :class:`Renderer` for ``image_size`` and ``kwargs``; a new one when there is none yet or the
+        cached one was closed.
+
+    Raises:
+        TypeError: an argument of the wrong type, as :class:`Renderer` raises.
+        ValueError: an argument out of range (named in the message, with its value), as :class:`Renderer` raises.
+
+    Example:
+        >>> get_renderer(64) is get_renderer(64)
+        True
+        >>> get_renderer(64, camera="orthographic")
+        Renderer(image_size=64, camera='orthographic', half_extent=0.8660, distance=2.2)
     """
     # repr() so that list-valued options (e.g. base_color=[...]) can key the cache too.
     key = (int(image_size), tuple(sorted((name, repr(value)) for name, value in kwargs.items())))
