@@ -17,11 +17,11 @@ from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = ["FINETUNE_LR_SCHEDULES", "RECIPES", "ExperimentConfig", "flag"]
 
-#: Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``).
 FINETUNE_LR_SCHEDULES = ("cosine", "constant")
-#: Training-image recipes (``ExperimentConfig.recipe``): ``"reference"`` or a name of
-#: :data:`~lightning_vtr.data.IMAGE_RECIPES`.
+"""Fine-tuning learning-rate schedules (``ExperimentConfig.finetune_lr``)."""
 RECIPES: tuple[str, ...] = ("reference", *IMAGE_RECIPES)
+"""Training-image recipes (``ExperimentConfig.recipe``): ``"reference"`` or a name of
+:data:`~lightning_vtr.data.IMAGE_RECIPES`."""
 
 
 def flag(
@@ -69,10 +69,14 @@ class ExperimentConfig:
         data: a ShapeNet-VTR directory; ``None`` uses the embedded procedural dataset.
         pretrain_epochs: epochs on Aligned before any view strategy (the paper's pre-trained model).
         finetune_epochs: epochs of fine-tuning, the same for every strategy (including none).
-        batch_size, num_workers, seed: as usual. ``image_size`` ``None`` takes the preset's.
+        batch_size: training and test batch size.
+        num_workers: data-loading worker processes.
+        image_size: input image side in pixels; ``None`` takes the preset's.
         fraction: share of training objects the callback gives new views per selection (its ``fraction``).
-        accelerator, devices, precision: passed to the Trainer; ``devices`` given as a string of digits
-            (from a command line) becomes an int.
+        seed: random seed of the models, data and callbacks.
+        accelerator: the Trainer's ``accelerator``.
+        devices: the Trainer's ``devices``; a string of digits (from a command line) becomes an int.
+        precision: the Trainer's ``precision``.
         out: where runs are written.
         recipe: the training images' recipe (``VTRDataModule(recipe=...)``): ``"plain"`` (composite on white,
             ImageNet normalisation; the default), ``"reference"`` (the model's published recipe, its class's
@@ -91,10 +95,12 @@ class ExperimentConfig:
 
     Raises:
         ValueError: ``finetune_lr`` or ``recipe`` is not a known name, or ``test_repeats`` is below 1.
+        TypeError: ``test_repeats`` is not an int.
 
-    Example::
-
-        ExperimentConfig(model="lrgt", data="/data/shapenet_vtr", pretrain_epochs=100, finetune_epochs=50)
+    Example:
+        >>> config = ExperimentConfig(model="lrgt", pretrain_epochs=100, finetune_epochs=50, devices="2")
+        >>> config.devices, config.out
+        (2, 'runs/vtr')
     """
 
     model: str = field(default="pix2vox", metadata=flag("reconstruction model", choices=lambda: tuple(MODELS)))

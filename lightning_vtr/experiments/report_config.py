@@ -31,28 +31,28 @@ __all__ = [
     "default_experiment",
 ]
 
-#: Row titles of the tables, per strategy name of :data:`~lightning_vtr.experiments.strategies.VARIANTS`.
 STRATEGY_TITLES: dict[str, str] = {name: variant.title for name, variant in VARIANTS.items()}
-#: The report's default rows: no augmentation, angle-uniform random views, the callback's default and the
-#: paper's exact rule. Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is opt-in.
+"""Row titles of the tables, per strategy name of :data:`~lightning_vtr.experiments.strategies.VARIANTS`."""
 MAIN_STRATEGIES: tuple[str, ...] = ("none", "random", "error_guided", "paper")
-#: The strategies every other one is compared with, seed by seed (when the report runs them).
+"""The report's default rows: no augmentation, angle-uniform random views, the callback's default and the
+paper's exact rule. Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is opt-in."""
 BASELINES: tuple[str, ...] = ("none", "random")
-#: The ablations of the error-guided method the report can run (none by default).
+"""The strategies every other one is compared with, seed by seed (when the report runs them)."""
 ABLATIONS: tuple[str, ...] = ("k", "pool", "single_view")
-#: Pitch bands (degrees) of the view-distribution table and chart.
+"""The ablations of the error-guided method the report can run (none by default)."""
 PITCH_BANDS: tuple[int, ...] = (-90, -60, -30, 0, 30, 60, 90)
-#: The metrics of Table 1, ``results.csv`` and ``differences.csv``.
+"""Pitch bands (degrees) of the view-distribution table and chart."""
 METRICS: tuple[str, ...] = ("iou@0.4", BEST_IOU, "fscore")
-#: The paper's bin interval K (degrees); the ``"error_guided"`` run uses it.
+"""The metrics of Table 1, ``results.csv`` and ``differences.csv``."""
 MAIN_K = 30
-#: The report's budget over :class:`~lightning_vtr.experiments.config.ExperimentConfig`'s defaults.
+"""The paper's bin interval K (degrees); the ``"error_guided"`` run uses it."""
 REPORT_EXPERIMENT: dict[str, Any] = {
     "out": "runs/report",
     "pretrain_epochs": 30,
     "finetune_epochs": 10,
     "test_repeats": 4,
 }
+"""The report's budget over :class:`~lightning_vtr.experiments.config.ExperimentConfig`'s defaults."""
 
 
 def default_experiment(**changes: Any) -> ExperimentConfig:

@@ -14,7 +14,6 @@ from lightning_vtr.experiments.report_run import read_json, write_json
 __all__ = ["finite_or_none", "record_invocation", "time_split", "time_tables"]
 
 
-#: Rows of the time split: (label, where the seconds come from).
 _FIT_STAGES = (
     ("training steps", "train_steps"),
     ("data loading", "train_data"),
@@ -22,6 +21,7 @@ _FIT_STAGES = (
     ("selection + synthesis", "augmentation"),
     ("other (setup, checkpoints)", "fit_other"),
 )
+"""Rows of the time split: (label, where the seconds come from)."""
 _TEST_STAGES = (("model", "test_steps"), ("data loading", "test_data"))
 
 

@@ -38,6 +38,11 @@ class Estimate:
         half_width: half the width of the confidence interval (``nan`` with one value).
         n: number of values (seeds).
         agree: how many values share the sign of the mean (0 when the mean is 0).
+
+    Example:
+        >>> estimate = Estimate(mean=0.02, half_width=0.01, n=3, agree=3)
+        >>> round(estimate.low, 3), round(estimate.high, 3), estimate.excludes_zero
+        (0.01, 0.03, True)
     """
 
     mean: float
@@ -47,10 +52,12 @@ class Estimate:
 
     @property
     def low(self) -> float:
+        """The interval's lower end, ``mean - half_width``."""
         return self.mean - self.half_width
 
     @property
     def high(self) -> float:
+        """The interval's upper end, ``mean + half_width``."""
         return self.mean + self.half_width
 
     @property
@@ -63,6 +70,24 @@ def mean_estimate(values: Sequence[float], confidence: float = 0.95) -> Estimate
     """Mean of ``values`` with a two-sided Student-t interval of the given ``confidence``.
 
     ``half_width = t_{(1 + confidence) / 2, n - 1} * s / sqrt(n)`` with ``s`` the sample standard deviation.
+
+    Args:
+        values: one number per seed.
+        confidence: the interval's confidence level, in (0, 1).
+
+    Returns:
+        An :class:`Estimate` over ``values`` (its ``half_width`` is ``nan`` for one value).
+
+    Raises:
+        ValueError: ``values`` is empty, or ``confidence`` is not in (0, 1).
+        TypeError: ``confidence`` is not a number.
+
+    Example:
+        >>> estimate = mean_estimate([1.0, 2.0, 3.0])
+        >>> estimate.mean, round(estimate.half_width, 3), estimate.n, estimate.agree
+        (2.0, 2.484, 3, 3)
+        >>> mean_estimate([0.5])
+        Estimate(mean=0.5, half_width=nan, n=1, agree=1)
     """
     confidence = check_float("confidence", confidence, minimum=0.0, maximum=1.0, min_open=True, max_open=True)
     values = [float(v) for v in values]
@@ -84,8 +109,22 @@ def paired_difference(
 ) -> Estimate:
     """Mean over seeds of ``treatment[seed] - baseline[seed]``, on the seeds both have.
 
+    Args:
+        treatment: seed -> the value of the strategy compared.
+        baseline: seed -> the value of the strategy it is compared with.
+        confidence: the interval's confidence level, in (0, 1).
+
+    Returns:
+        The :func:`mean_estimate` of the paired differences.
+
     Raises:
-        ValueError: when the two share no seed.
+        ValueError: when the two share no seed, or ``confidence`` is not in (0, 1).
+        TypeError: ``confidence`` is not a number.
+
+    Example:
+        >>> difference = paired_difference({0: 0.52, 1: 0.55, 2: 0.50}, {0: 0.50, 1: 0.51, 2: 0.49, 3: 0.6})
+        >>> round(difference.mean, 4), difference.n, difference.agree
+        (0.0233, 3, 3)
     """
     seeds = sorted(set(treatment) & set(baseline))
     if not seeds:
@@ -98,8 +137,19 @@ def paired_difference(
 def pitch_histogram(viewpoints: Tensor, edges: Sequence[float] = (-90, -60, -30, 0, 30, 60, 90)) -> Tensor:
     """Share of viewpoints ``(..., 2)`` per pitch band ``[edges[i], edges[i + 1])`` (the last band closed).
 
+    Args:
+        viewpoints: ``(..., 2)`` (yaw, pitch) in degrees.
+        edges: increasing band edges in degrees, from -90 to 90.
+
     Returns:
         ``(len(edges) - 1,)`` float64 shares summing to 1 (all 0 for no viewpoints).
+
+    Raises:
+        ValueError: ``viewpoints`` is not ``(..., 2)`` or holds a NaN / infinite angle.
+
+    Example:
+        >>> pitch_histogram(torch.tensor([[0.0, 10.0], [90.0, -45.0], [180.0, 90.0]]), edges=(-90, 0, 90))
+        tensor([0.3333, 0.6667], dtype=torch.float64)
     """
     pitch = check_viewpoints(viewpoints).reshape(-1, 2)[:, 1].to(torch.float64).contiguous()
     bounds = torch.as_tensor(edges, dtype=torch.float64)
@@ -112,6 +162,22 @@ def antipodal_share(view_sets: Tensor, tolerance: float = 15.0) -> float:
     """Share of view sets ``(B, n, 2)`` holding a pair of views at least ``180 - tolerance`` degrees apart.
 
     Such a pair sees mirror-image silhouettes: the second view adds little the first did not show.
+
+    Args:
+        view_sets: ``(B, n, 2)`` (yaw, pitch) in degrees.
+        tolerance: how far from opposite (degrees, in [0, 180]) a pair may be.
+
+    Returns:
+        The share in [0, 1] (0 for no view sets).
+
+    Raises:
+        ValueError: ``view_sets`` is not ``(B, n, 2)`` or holds a NaN / infinite angle, or ``tolerance`` is not
+            in [0, 180].
+        TypeError: ``tolerance`` is not a number.
+
+    Example:
+        >>> antipodal_share(torch.tensor([[[0.0, 0.0], [180.0, 0.0]], [[0.0, 0.0], [30.0, 0.0]]]))
+        0.5
     """
     tolerance = check_float("tolerance", tolerance, minimum=0.0, maximum=180.0)
     distance = _pairwise_distances(view_sets)
@@ -121,7 +187,21 @@ def antipodal_share(view_sets: Tensor, tolerance: float = 15.0) -> float:
 
 
 def triplet_spread(view_sets: Tensor) -> float:
-    """Mean angular distance (degrees) between the views of a set, over all pairs and sets ``(B, n, 2)``."""
+    """Mean angular distance (degrees) between the views of a set, over all pairs and sets ``(B, n, 2)``.
+
+    Args:
+        view_sets: ``(B, n, 2)`` (yaw, pitch) in degrees.
+
+    Returns:
+        The mean distance in degrees (0 for no view sets or sets of one view).
+
+    Raises:
+        ValueError: ``view_sets`` is not ``(B, n, 2)`` or holds a NaN / infinite angle.
+
+    Example:
+        >>> triplet_spread(torch.tensor([[[0.0, 0.0], [180.0, 0.0]], [[0.0, 0.0], [30.0, 0.0]]]))
+        105.0
+    """
     distance = _pairwise_distances(view_sets)
     n = distance.shape[1]
     if distance.shape[0] == 0 or n < 2:

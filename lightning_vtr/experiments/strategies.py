@@ -37,16 +37,16 @@ __all__ = [
     "load_variants",
 ]
 
-#: The YAML file of named strategies shipped with the package.
 STRATEGIES_FILE = Path(__file__).with_name("strategies.yaml")
-#: The keys a row of a strategies file may hold.
+"""The YAML file of named strategies shipped with the package."""
 ROW_KEYS = ("title", "description", "selector", "selector_kwargs", "callback_kwargs", "max_samples_fraction")
-#: Callback arguments a row may not set: the report supplies them, or they depend on a dataset's size.
+"""The keys a row of a strategies file may hold."""
 _RESERVED_CALLBACK_KEYS = {
     "selector": "the row's `selector` builds it",
     "synthesizer": "the report supplies it",
     "max_samples": "a count depends on the dataset's size; use `max_samples_fraction`",
 }
+"""Callback arguments a row may not set: the report supplies them, or they depend on a dataset's size."""
 
 
 class StrategyFileError(DataError):
@@ -221,12 +221,12 @@ def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVaria
     return variants
 
 
-#: Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
-#: The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
-#: callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``).
 VARIANTS: dict[str, StrategyVariant] = load_variants()
-#: The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments (the examples' "Ours").
+"""Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
+The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
+callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``)."""
 DEFAULT_STRATEGY = "visible_tau10_search"
-#: The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
-#: :data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`.
+"""The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments (the examples' "Ours")."""
 STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
+"""The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
+:data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`."""

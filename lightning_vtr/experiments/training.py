@@ -60,12 +60,32 @@ class CosineFineTuning(L.Callback):
     The base rate is the group's ``initial_lr`` (written by any torch scheduler) or its ``lr`` when the
     optimizer is first seen, so a resumed run continues the same curve. The model's own scheduler still
     steps, but this callback overrides its value at every epoch start.
+
+    Args:
+        epochs: the epochs the curve spans (the fine-tuning epochs); later epochs stay at factor 0.
+
+    Raises:
+        ValueError: ``epochs`` is below 1.
+        TypeError: ``epochs`` is not an int.
+
+    Example:
+        >>> schedule = CosineFineTuning(4)  # L.Trainer(max_epochs=4, callbacks=[schedule])
+        >>> tuple(round(schedule.factor(epoch), 3) for epoch in range(5))
+        (1.0, 0.854, 0.5, 0.146, 0.0)
     """
 
     def __init__(self, epochs: int) -> None:
         self.epochs = check_int("epochs", epochs, minimum=1)
 
     def factor(self, epoch: int) -> float:
+        """The multiplier of the base rates at ``epoch`` (0-based): 1 at epoch 0, 0 from ``epochs`` on.
+
+        Args:
+            epoch: the training epoch.
+
+        Returns:
+            ``(1 + cos(pi * min(epoch, epochs) / epochs)) / 2``.
+        """
         return 0.5 * (1.0 + math.cos(math.pi * min(epoch, self.epochs) / self.epochs))
 
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -86,6 +106,12 @@ class StageTimer(L.Callback):
     setup, checkpoints, other hooks); ``test`` (the whole ``trainer.test``), ``test_steps`` (test batches) and
     ``test_data`` (the rest of ``test``: loading the test items). Give it to the Trainer before the callback
     it brackets.
+
+    Example:
+        >>> timer = StageTimer()
+        >>> callbacks = [timer, *timer.bracket(L.Callback())]  # L.Trainer(callbacks=callbacks)
+        >>> len(callbacks), timer.seconds["fit"]
+        (4, 0.0)
     """
 
     STAGES = (
@@ -204,9 +230,9 @@ class _Marker(L.Callback):
         return self._generate_state_key(opening=self.opening)
 
 
-#: Model arguments that name pretrained weight files: a fine-tuning run takes every weight from the pretrained
-#: checkpoint instead, so it neither re-reads nor needs those files.
 _WEIGHT_ARGUMENTS = ("backbone_weights", "pretrained_encoder")
+"""Model arguments that name pretrained weight files: a fine-tuning run takes every weight from the pretrained
+checkpoint instead, so it neither re-reads nor needs those files."""
 
 
 def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelReconstructionModule:
@@ -215,6 +241,21 @@ def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelR
     ``fine_tuning=True`` builds the model a pretrained checkpoint is loaded into: without the weight-file
     arguments (the checkpoint holds those weights), and Pix2Vox++ with ``BCE(refined)`` only, as VTR fine-tunes
     it (its paper preset pretrains with the two-stage loss), unless ``model_kwargs`` say otherwise.
+
+    Args:
+        config: supplies ``model``, ``preset`` and ``model_kwargs``.
+        fine_tuning: build the model a pretrained checkpoint is loaded into (see above).
+
+    Returns:
+        A new :class:`~lightning_vtr.models.base.VoxelReconstructionModule` with its initial weights.
+
+    Raises:
+        ValueError: ``config.model`` is not in :data:`MODELS`.
+
+    Example:
+        >>> model = make_model(ExperimentConfig(model="pix2vox", preset="tiny"))
+        >>> type(model).__name__, model.num_views, model.image_size
+        ('Pix2VoxPlusPlus', 3, 64)
     """
     model_class = MODELS[check_choice("model", config.model, MODELS)]
     kwargs = dict(config.model_kwargs)
@@ -238,6 +279,12 @@ def make_datamodule(
 
     Returns:
         A :class:`~lightning_vtr.data.datamodule.VTRDataModule`, not set up.
+
+    Example:
+        >>> config = ExperimentConfig(batch_size=4)
+        >>> dm = make_datamodule(config, make_model(config), num_views=1)
+        >>> dm.num_views, dm.batch_size
+        (1, 4)
     """
     return VTRDataModule(
         config.data,
@@ -285,7 +332,21 @@ def evaluate(
 ) -> dict:
     """Test on every view set; returns ``{view_set: {metric: value}}`` (and per-category entries).
 
-    ``timer`` (a :class:`StageTimer`) adds the test's time to its ``test`` stages.
+    Args:
+        model: the model to test.
+        dm: its datamodule; its ``test_split`` and ``test_repeats`` say which items each view set tests.
+        config: supplies the test Trainer's ``accelerator`` and ``trainer_kwargs``; the test runs on one device.
+        run_dir: the Trainer's ``default_root_dir``.
+        timer: a :class:`StageTimer` that adds the test's time to its ``test`` stages; ``None``: none.
+
+    Returns:
+        ``{view_set: {metric: value}}``, per-category entries under ``"<view_set>/<category>"``.
+
+    Example::
+
+        model = load_run_model(config, run_dir)
+        results = evaluate(model, make_datamodule(config, model), config, run_dir)
+        results["spherical"]["iou@0.4"]
     """
     kwargs: dict[str, Any] = dict(
         accelerator=config.accelerator,
@@ -311,6 +372,20 @@ def pretrain(config: ExperimentConfig) -> Path:
 
     Beside the checkpoint, ``timing.json`` holds the fit's :class:`StageTimer` stages (seconds; the part
     after the last resume when the fit was interrupted).
+
+    Args:
+        config: the experiment; the run lives in ``<config.out>/pretrain`` and resumes from its ``last.ckpt``.
+
+    Returns:
+        The path of ``<config.out>/pretrain/pretrained.ckpt`` (weights only).
+
+    Raises:
+        ValueError: ``config.model`` is not in :data:`MODELS`.
+
+    Example::
+
+        config = ExperimentConfig(pretrain_epochs=2, finetune_epochs=2, out="runs/demo")
+        ckpt = pretrain(config)  # runs/demo/pretrain/pretrained.ckpt
     """
     run_dir = Path(config.out) / "pretrain"
     ckpt = run_dir / "pretrained.ckpt"
@@ -354,6 +429,10 @@ def training_objects(config: ExperimentConfig) -> int:
 
     Raises:
         DatasetNotFoundError: ``config.data`` holds no ``metadata.json``.
+
+    Example::
+
+        training_objects(ExperimentConfig(data="/data/shapenet_vtr"))
     """
     from lightning_vtr.data.format import load_metadata
 
@@ -442,6 +521,14 @@ def resolved_strategy(
 
     Raises:
         ValueError: ``name`` is not in ``variants``.
+
+    Example:
+        >>> resolved_strategy("none") is None
+        True
+        >>> resolved = resolved_strategy("random", callback_kwargs={"fraction": 0.1})
+        >>> callback_kwargs = resolved["callback_kwargs"]
+        >>> resolved["selector"], callback_kwargs["search_fraction"]
+        ('random', 0.1)
     """
     variants = VARIANTS if variants is None else variants
     variant = variants[check_choice("name", name, variants)]
@@ -467,8 +554,8 @@ def resolved_strategy(
     return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
 
 
-#: ExperimentConfig fields that say where and on what a run happens, not what it measures.
 _PLACEMENT = frozenset({"out", "accelerator", "devices", "num_workers"})
+"""ExperimentConfig fields that say where and on what a run happens, not what it measures."""
 
 
 def _comparable(config: ExperimentConfig) -> dict[str, Any]:
@@ -493,11 +580,33 @@ def run_strategy(
     Without ``callback``, :func:`make_strategy` builds it from ``name`` (a name in :data:`VARIANTS`),
     ``synthesizer``, ``selector_kwargs`` and ``callback_kwargs``.
 
+    Args:
+        name: a name in :data:`VARIANTS` (the payload's ``strategy``, and the run's directory name unless
+            ``run_name`` is given).
+        config: the experiment; the run lives under ``config.out``.
+        pretrained: the checkpoint of :func:`pretrain` the model starts from.
+        run_name: the run's directory under ``config.out``; ``None``: ``name``.
+        callback: the view-augmentation callback; ``None``: :func:`make_strategy` builds it from ``name``.
+        synthesizer: the callback's synthesizer when ``callback`` is ``None`` (``None``: mesh rendering).
+        selector_kwargs: as for :func:`make_strategy`, when ``callback`` is ``None``.
+        callback_kwargs: as for :func:`make_strategy`, when ``callback`` is ``None``.
+
     Returns:
         The ``results.json`` payload: ``strategy``, ``config``, ``train_seconds`` (the fit),
         ``eval_seconds`` (the test), ``timing`` (:class:`StageTimer` stages of both, seconds; for the part
         after the last resume when the fit was interrupted), ``generated_samples`` and ``results``
         (``{view_set: {metric: value}}``, per-category entries under ``"<view_set>/<category>"``).
+
+    Raises:
+        ValueError: the run's cached ``results.json`` was written with another configuration (fields other than
+            ``out``, ``accelerator``, ``devices`` and ``num_workers`` differ), ``name`` is not in
+            :data:`VARIANTS` (without ``callback``), or ``config.model`` is not in :data:`MODELS`.
+
+    Example::
+
+        config = ExperimentConfig(pretrain_epochs=2, finetune_epochs=2, out="runs/demo")
+        payload = run_strategy("random", config, pretrain(config))
+        payload["results"]["spherical"]["iou@0.4"]
     """
     run_dir = Path(config.out) / (run_name or name)
     result_file = run_dir / "results.json"
@@ -550,8 +659,20 @@ def run_strategy(
 def load_run_model(config: ExperimentConfig, run_dir: Path) -> VoxelReconstructionModule:
     """The experiment's model with the final weights of a fitted run (``run_dir/checkpoints/last.ckpt``).
 
+    Args:
+        config: the experiment the run belongs to (its ``model``, ``preset`` and ``model_kwargs``).
+        run_dir: the run's directory, ``<config.out>/<run name>``.
+
+    Returns:
+        The model as :func:`make_model` builds it with ``fine_tuning=True``, holding the run's final weights
+        (on the CPU).
+
     Raises:
         FileNotFoundError: the run has no ``checkpoints/last.ckpt`` (it was not fitted by :func:`run_strategy`).
+
+    Example::
+
+        model = load_run_model(config, Path(config.out) / "random")
     """
     checkpoint = Path(run_dir) / "checkpoints" / "last.ckpt"
     if not checkpoint.is_file():
@@ -568,12 +689,24 @@ def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
     tests it on every view set of the validation objects, each on ``repeats`` fixed view sets (the same for
     every strategy of a seed). Choosing a strategy on these numbers leaves the test split untouched.
 
+    Args:
+        config: the experiment the run belongs to.
+        run_dir: the run's directory, ``<config.out>/<run name>``.
+        repeats: fixed view sets per validation object (at least 1).
+
     Returns:
         ``{view_set: {metric: value}}`` as :func:`evaluate` gives, cached in ``run_dir/validation.json`` (a
         cache written with another ``repeats`` is recomputed).
 
     Raises:
         FileNotFoundError: the run has no ``checkpoints/last.ckpt`` (it was not fitted by :func:`run_strategy`).
+        ValueError: ``repeats`` is below 1.
+        TypeError: ``repeats`` is not an int.
+
+    Example::
+
+        results = validate_run(config, Path(config.out) / "random", repeats=4)
+        results["spherical"]["iou@0.4"]
     """
     check_int("repeats", repeats, minimum=1)
     run_dir = Path(run_dir)
