@@ -1,4 +1,4 @@
-"""Data: the ShapeNet-VTR format and builder, the procedural dataset, readers, image recipes, and the mutable DataModule.
+"""Data: the ShapeNet-VTR format and builder, the procedural dataset, readers, image recipes and the mutable DataModule.
 
 Names are imported lazily so dataset build workers do not import Lightning.
 """

@@ -134,6 +134,12 @@ class BuildReport:
         failed: key -> error message (naming the file) for objects that failed in this pass.
         seconds: wall time of the pass.
         finalized: whether ``metadata.json`` was written (every object of every shard finished).
+
+    Example:
+        >>> report = BuildReport(Path("out"), built=["chair/c0"], failed={"car/c1": "ValueError: bad mesh"})
+        >>> print(report.summary())
+        built 1, skipped 0 (already complete), failed 1 in 0.0 s; metadata not written (objects of other ...)
+          FAILED car/c1: ValueError: bad mesh
     """
 
     output_dir: Path
@@ -550,8 +556,18 @@ def build_dataset(
         A :class:`BuildReport` of this pass.
 
     Raises:
-        ValueError: for invalid arguments (names the argument and the value), a source without meshes, or
-            an ``output_dir`` that was built with other options.
+        TypeError: an argument of the wrong type (names the argument and the value), e.g. a ``split`` or
+            ``shard`` that is not a sequence of numbers.
+        ValueError: for invalid arguments (names the argument and the value), a source that is neither
+            ``"procedural"`` nor a folder, an ``output_dir`` that is a file or a folder of other files, or an
+            ``output_dir`` that was built with other options.
+
+    Example::
+
+        from lightning_vtr.data import build_dataset
+
+        report = build_dataset("data/vtr-chairs", categories=["chair"], objects_per_category=10, workers=4)
+        print(report.summary())  # built 10, skipped 0 (already complete), failed 0 in ... s; metadata written
     """
     _check_args(image_size, resolution, views_per_set, aligned_pitch, split, shard, source_layout, workers, up_axis)
     views_per_set, pix3d = _protocol_opts(protocol, views_per_set, views_per_object, pitch_range)
@@ -741,8 +757,19 @@ def ensure_embedded_dataset(
         workers: build processes; ``None``: up to 2.
         overrides: build options replacing :data:`EMBEDDED_DEFAULTS` (see :func:`build_dataset`).
 
+    Returns:
+        The dataset directory, holding a finished build (with ``metadata.json``).
+
     Raises:
         RuntimeError: an object failed to build (the procedural source should never fail).
+        ValueError: an invalid build option (see :func:`build_dataset`).
+
+    Example::
+
+        from lightning_vtr.data import VTRDataModule, ensure_embedded_dataset
+
+        root = ensure_embedded_dataset()  # built on the first call, then reused
+        datamodule = VTRDataModule(root)
     """
     opts = {**EMBEDDED_DEFAULTS, **overrides}
     root = embedded_dataset_dir(**overrides) if root is None else Path(root)

@@ -69,9 +69,10 @@ class _UnpaddedShardSampler(DistributedSampler):
 
 
 class VTRDataModule(L.LightningDataModule):
-    """Serves a ShapeNet-VTR dataset: Aligned/train for training, Aligned/val for validation (another view set
-    with ``train_view_set``), and the test split of every view set as named test dataloaders (in
-    ``test_view_sets`` order).
+    """Serves a ShapeNet-VTR dataset to Lightning: training, validation and one test dataloader per view set.
+
+    Aligned/train for training, Aligned/val for validation (another view set with ``train_view_set``), and the
+    test split of every view set as named test dataloaders (in ``test_view_sets`` order).
 
     Generated view sets enter through :meth:`add_samples`; they are written to ``generated_dir`` and
     appear from the next ``train_dataloader()`` call on (use ``reload_dataloaders_every_n_epochs=1``).

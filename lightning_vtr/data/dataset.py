@@ -182,6 +182,13 @@ class GeneratedSample:
         images: ``(T, H, W, 4)`` uint8 RGBA.
         viewpoints: ``(T, 2)`` (yaw, pitch) in degrees.
         epoch: the training epoch whose end produced it.
+
+    Example:
+        >>> images = np.zeros((3, 64, 64, 4), np.uint8)  # three RGBA views
+        >>> viewpoints = np.array([[0.0, 30.0], [120.0, 30.0], [-120.0, 30.0]])  # (yaw, pitch) in degrees
+        >>> sample = GeneratedSample("chair", "chair_0001", images, viewpoints, epoch=4)
+        >>> sample.images.shape, sample.viewpoints.shape
+        ((3, 64, 64, 4), (3, 2))
     """
 
     category: str

@@ -109,8 +109,19 @@ class FolderTestSet(Dataset):
             ``"skip"`` or ``"error"``.
 
     Raises:
-        FileNotFoundError: a root is not a directory, or (``missing="error"``) a voxel file is absent.
-        ValueError: no object is left, or an object has fewer than ``num_views`` pictures (names the folder).
+        FileNotFoundError: a root is not a directory, ``split_file`` does not exist, or (``missing="error"``) a
+            voxel file is absent.
+        TypeError: ``num_views`` is not an int.
+        ValueError: no object is left, an object has fewer than ``num_views`` pictures (names the folder),
+            ``categories`` names a taxonomy the image root lacks, or ``num_views``, ``view_choice``, ``split``,
+            ``voxel_up_axis`` or ``missing`` is out of range.
+
+    Example::
+
+        from lightning_vtr.data import FolderTestSet
+
+        test_set = FolderTestSet("VTR/Spherical", "ShapeNetVox32", num_views=3, view_choice="spread")
+        item = test_set[0]  # item["images"]: (3, 3, 224, 224), item["voxels"]: (32, 32, 32), view_set "spherical"
     """
 
     def __init__(

@@ -93,6 +93,12 @@ class ObjectRecord:
         views: view-set name -> (image paths, ``(N, 2)`` (yaw, pitch) in degrees).
         voxel_up_axis: the up axis of the frame ``voxel_path`` was made in: ``"z"`` for files this package
             writes, ``"y"`` for ShapeNetVox32; pass it to :func:`lightning_vtr.data.binvox.read_binvox`.
+
+    Example:
+        >>> directory = object_dir("data", "chair", "chair_0001")
+        >>> record = ObjectRecord("chair", "chair_0001", "test", directory / "model.binvox", None)
+        >>> record.key, record.voxel_path.as_posix()
+        ('chair/chair_0001', 'data/objects/chair/chair_0001/model.binvox')
     """
 
     category: str
@@ -235,8 +241,21 @@ def scan_dataset(root: str | Path, *, check_files: bool = False) -> list[ObjectR
         root: the dataset directory.
         check_files: also check that every voxel file and image exists (one ``stat`` per file).
 
+    Returns:
+        One record per object, each with the image paths and ``(N, 2)`` float64 viewpoints (yaw, pitch in
+        degrees) of every view set of ``metadata.json``.
+
     Raises:
-        DatasetFormatError: see :func:`load_metadata`; or a listed file is missing (``check_files``).
+        DatasetFormatError: see :func:`load_metadata`; an object entry is malformed (bad key, split or view
+            set); or a listed file is missing (``check_files``).
+
+    Example::
+
+        from lightning_vtr.data import scan_dataset
+
+        records = scan_dataset("data/shapenet-vtr", check_files=True)
+        test = [r for r in records if r.split == "test"]
+        paths, viewpoints = test[0].views["spherical"]  # 24 image paths, (24, 2) (yaw, pitch) in degrees
     """
     root = Path(root)
     meta = load_metadata(root)

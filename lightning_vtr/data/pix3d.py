@@ -163,16 +163,31 @@ class Pix3DRecord:
 
     Attributes:
         index: its position in ``pix3d.json``.
-        category, object_id: the category and the photograph's file stem (``"chair"``, ``"0001"``).
+        category: the category (``"chair"``).
+        object_id: the photograph's file stem (``"0001"``).
         model_id: the 3D model's folder name (``"IKEA_POANG_1"``).
-        image_path, mask_path, voxel_path: absolute paths.
+        image_path: the photograph, an absolute path.
+        mask_path: the object's mask, an absolute path.
+        voxel_path: the model's ``voxel.mat``, an absolute path.
         bbox: ``(x0, y0, x1, y1)``, pixel indices of the box's first and last columns and rows.
-        image_size: ``(width, height)``.
-        rotation: ``rot_mat``, ``(3, 3)``.
-        translation: ``trans_mat``, ``(3,)``.
-        camera_position: ``cam_position`` (model frame) when the record has one.
+        image_size: ``(width, height)`` in pixels.
+        rotation: ``rot_mat``, ``(3, 3)`` float64.
+        translation: ``trans_mat``, ``(3,)`` float64.
+        camera_position: ``cam_position`` ``(3,)`` (model frame) when the record has one.
         focal_length: ``focal_length`` in mm (on a 32 mm wide sensor) when the record has one.
-        truncated, occluded, slightly_occluded: Pix3D's flags.
+        truncated: Pix3D's flag: the object is cut by the photograph's border.
+        occluded: Pix3D's flag: the object is occluded.
+        slightly_occluded: Pix3D's flag: the object is slightly occluded.
+
+    Example:
+        >>> root = Path("/data/pix3d")
+        >>> record = Pix3DRecord(
+        ...     0, "chair", "0001", "IKEA_POANG_1", root / "img/chair/0001.jpg", root / "mask/chair/0001.png",
+        ...     root / "model/chair/IKEA_POANG_1/voxel.mat", (10.0, 20.0, 200.0, 300.0), (640, 480),
+        ...     np.eye(3), np.array([0.0, 0.0, 2.0]),
+        ... )
+        >>> record.key, record.hidden
+        ('chair/0001', False)
     """
 
     index: int
@@ -306,11 +321,23 @@ def read_pix3d(
         missing: a record whose image, mask or voxel file is absent: ``"warn"`` (skip, warn once with the
             count), ``"skip"`` or ``"error"``.
 
+    Returns:
+        The kept records, in ``pix3d.json`` order.
+
     Raises:
-        FileNotFoundError: ``root`` or the annotation file is absent; (``missing="error"``) a listed file is.
+        FileNotFoundError: ``root``, the annotation file or ``split_file`` is absent; (``missing="error"``) a
+            listed file is.
         DatasetFormatError: the annotation file is not a JSON list, or a record lacks a key or holds a bad
             value (the message names the file, the record, the key, what was expected and what it held).
-        ValueError: ``categories`` names a category the file does not have.
+        ValueError: ``categories`` names a category the file does not have, or ``missing`` is not one of
+            ``"warn"``, ``"skip"``, ``"error"``.
+
+    Example::
+
+        from lightning_vtr.data import read_pix3d
+
+        records = read_pix3d("data/pix3d", categories=["chair"])  # the unoccluded, untruncated chair photographs
+        print(len(records), records[0].key, records[0].image_path)
     """
     root = Path(root).expanduser()
     if not root.is_dir():
@@ -571,6 +598,20 @@ class Pix3DDataset(Dataset):
         view_set: the ``view_set`` name items carry. The package's models accept only
             :data:`~lightning_vtr.protocol.VIEW_SETS` there (their ``test_step`` logs per set), so Pix3D is
             served as ``"aligned"`` by default; the name only routes the metrics.
+
+    Raises:
+        FileNotFoundError: ``records`` is a root without Pix3D's annotation file (see :func:`read_pix3d`).
+        DatasetFormatError: ``records`` is a root whose annotation file is malformed (see :func:`read_pix3d`).
+        TypeError: ``resolution`` is not an int, or ``margin`` not a number.
+        ValueError: ``resolution`` below 1, a negative ``margin``, an unknown ``pooling``, or a ``yaw_offset``
+            that is not a multiple of 90.
+
+    Example::
+
+        from lightning_vtr.data import Pix3DDataset, read_pix3d
+
+        dataset = Pix3DDataset(read_pix3d("data/pix3d", categories=["chair"]), image_size=224, resolution=32)
+        item = dataset[0]  # item["images"]: (1, 3, 224, 224), item["voxels"]: (32, 32, 32) float32
     """
 
     def __init__(

@@ -136,6 +136,10 @@ class ShapeNetRenderingSource:
     Category names are the split file's ``taxonomy_name`` (Pix2Vox: "aeroplane", "watercraft", ...), or
     :data:`~lightning_vtr.data.format.SHAPENET_SYNSETS`'s name, or the taxonomy id.
 
+    Raises:
+        FileNotFoundError: a root is not a directory, or ``split_file`` does not exist.
+        ValueError: ``missing`` is not ``"warn"``, ``"skip"`` or ``"error"``.
+
     Example::
 
         records = list(ShapeNetRenderingSource("ShapeNetRendering", "ShapeNetVox32", "ShapeNet.json"))

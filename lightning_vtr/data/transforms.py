@@ -4,8 +4,8 @@ The ops are plain torch functions on ``(..., 3, H, W)`` float images in ``[0, 1]
 random number. :class:`ImageTransform` chains them and draws every random parameter of a sample from a
 key such as ``(seed, epoch, index)``, so a sample's augmentation never depends on the worker, the process
 or a global random state. Training views can also be composited over random crops of the images of a folder
-(:class:`BackgroundFolder`, ``ImageRecipe(background_folder=...)``). :class:`ImageRecipe` holds the settings of one recipe; :data:`IMAGE_RECIPES`
-names the reference ones.
+(:class:`BackgroundFolder`, ``ImageRecipe(background_folder=...)``). :class:`ImageRecipe` holds the settings of
+one recipe; :data:`IMAGE_RECIPES` names the reference ones.
 
 One module, past 600 lines, because the ops, the recipe and the transform share the parameter names and the
 keyed random draws that make samples reproducible.
@@ -329,11 +329,11 @@ class ImageRecipe:
     model's input size and normalised. In training (:meth:`train_transform`) the background is instead
     drawn per sample from ``background_range`` and, in this order, colour jitter (brightness, contrast and
     saturation factors drawn from ``[1 - b, 1 + b]``, applied in a random order), PCA lighting noise, a
-    clamp to ``[0, 1]`` (unless ``clamp=False``), a horizontal flip of each image with probability 1/2 and one random permutation of
-    the RGB channels follow the resize. Background, jitter, lighting and permutation are drawn once per
-    sample (shared by its views), flips once per image. With ``background_folder``, training composites each
-    view instead over its own random crop (the view's size, a random position) of a random image of that
-    folder (:class:`BackgroundFolder`), drawn from the same key.
+    clamp to ``[0, 1]`` (unless ``clamp=False``), a horizontal flip of each image with probability 1/2 and one
+    random permutation of the RGB channels follow the resize. Background, jitter, lighting and permutation are
+    drawn once per sample (shared by its views), flips once per image. With ``background_folder``, training
+    composites each view instead over its own random crop (the view's size, a random position) of a random
+    image of that folder (:class:`BackgroundFolder`), drawn from the same key.
 
     Args:
         background: RGB (0-255) composited under transparent pixels; the only background outside training.
@@ -353,6 +353,11 @@ class ImageRecipe:
         background_folder: training only: a folder of images (``.png``/``.jpg``/``.jpeg``, recursive) whose
             random crops replace ``background_range`` (e.g. SUN backgrounds, as in Pix2Vox++'s Pix3D protocol).
             Outside training the background stays ``background``.
+
+    Raises:
+        TypeError: a field of the wrong type (names the field and the value).
+        ValueError: a field out of range, e.g. a channel outside ``[0, 255]``, a ``crop`` outside ``(0, 1]`` or
+            an unknown ``normalize``.
 
     Example:
         >>> recipe = IMAGE_RECIPES["pix2vox"]
@@ -480,7 +485,18 @@ class ImageTransform:
     ``(3, S, S)`` or ``(T, 3, S, S)`` float32.
 
     Raises:
-        ValueError: on call, when the transform is random and no ``key`` is given.
+        TypeError: an argument of the wrong type (names the argument and the value).
+        ValueError: an argument out of range, or a ``background_folder`` without images; on call, images that
+            are not ``(H, W, 4)`` or ``(T, H, W, 4)``, or a random transform called without a ``key``.
+        FileNotFoundError: ``background_folder`` is not a directory.
+
+    Example:
+        >>> images = np.zeros((3, 96, 96, 4), np.uint8)  # three RGBA views
+        >>> ImageTransform(64)(images).shape
+        torch.Size([3, 3, 64, 64])
+        >>> train = ImageTransform(64, hflip=True)
+        >>> train.is_random, torch.equal(train(images, key=(0, 0, 5)), train(images, key=(0, 0, 5)))
+        (True, True)
     """
 
     def __init__(

@@ -78,6 +78,12 @@ class VerifyReport:
         files: image and voxel files read.
         problems: every problem found, in the order of ``metadata.json``.
         seconds: wall time of the check.
+
+    Example:
+        >>> missing = DatasetProblem(Path("data/objects/chair/c0/model.binvox"), "missing", "does not exist")
+        >>> report = VerifyReport(Path("data"), objects=10, files=250, problems=[missing])
+        >>> report.ok, str(report.problems[0])
+        (False, 'data/objects/chair/c0/model.binvox: does not exist')
     """
 
     root: Path
@@ -132,8 +138,8 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
 
     Checked once: ``splits.json`` exists, is JSON of ``{category: {split: [object ids]}}`` and puts every object
     in the split ``metadata.json`` gives it (kind ``"inconsistent"`` otherwise). Checked per object of
-    ``metadata.json``: its ``object.json`` exists, is valid and names the object; its ``mesh.ply``, where there is one (the renderer's), loads with faces; its
-    directory and ``model.binvox`` exist; the voxel file decodes
+    ``metadata.json``: its ``object.json`` exists, is valid and names the object; its ``mesh.ply``, where there
+    is one (the renderer's), loads with faces; its directory and ``model.binvox`` exist; the voxel file decodes
     to ``R x R x R`` with ``R = metadata["resolution"]``; every view set of ``metadata["view_sets"]`` lists
     ``metadata["views_per_set"]`` viewpoints and its directory holds exactly those images, ``00.png`` ..;
     every image decodes and is ``image_size x image_size``. Each problem names the file and, where there is

@@ -81,7 +81,20 @@ def evaluate_dataset(
         ``count``, ``iou@<t>`` for every threshold, ``iou_best`` and ``fscore`` (fractions in ``[0, 1]``).
 
     Raises:
-        ValueError: the dataset is empty, or a prediction's shape is not the ground truth's (names both).
+        TypeError: ``batch_size`` is not an int.
+        ValueError: the dataset is empty, ``batch_size`` is below 1, or a prediction's shape is not the ground
+            truth's (names both).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> cube = torch.zeros(8, 8, 8)
+        >>> cube[2:6, 2:6, 2:6] = 1
+        >>> items = [{"images": torch.zeros(1, 3, 32, 32), "voxels": cube, "category": "chair"}] * 2
+        >>> oracle = SimpleNamespace(predict_voxels=lambda images: cube.expand(len(images), 8, 8, 8))
+        >>> result = evaluate_dataset(oracle, items, fscore_points=512)
+        >>> overall = result["overall"]
+        >>> overall["count"], overall["iou@0.4"], result["best_threshold"]
+        (2, 1.0, 0.2)
     """
     if len(cast(Sized, dataset)) == 0:  # a map-style dataset
         raise ValueError("`dataset` must hold at least one item, got an empty dataset")
@@ -144,6 +157,27 @@ def evaluate_folder(
     ``lightning_vtr.evaluation.predict.make_datamodule(ckpt, model).transform``); other keyword arguments go to
     :class:`~lightning_vtr.data.FolderTestSet`.
 
+    Args:
+        model: anything with ``predict_voxels(images (B, V, 3, H, W)) -> (B, R, R, R)`` probabilities, as in
+            :func:`evaluate_dataset`.
+        image_root: the set's folder, ``<image_root>/<taxonomy>/<model>/NN.png``.
+        voxel_root: ``<voxel_root>/<taxonomy>/<model>/model.binvox`` (ShapeNetVox32).
+        num_views: pictures per object; ``None``: ``model.num_views`` (1 when the model has none).
+        transform: RGBA uint8 pictures -> model input; ``None``: the plain
+            :class:`~lightning_vtr.data.ImageTransform` at ``model.image_size`` (224 when the model has none).
+        batch_size: objects per forward pass.
+        device: where the forward passes run.
+        **dataset_kwargs: further arguments of :class:`~lightning_vtr.data.FolderTestSet` (e.g.
+            ``view_choice``, ``categories``, ``split_file``).
+
+    Returns:
+        The dict :func:`evaluate_dataset` returns: ``{"overall": {...}, "categories": {...}, "best_threshold": t}``.
+
+    Raises:
+        FileNotFoundError: a root is not a directory (see :class:`~lightning_vtr.data.FolderTestSet`).
+        ValueError: the folders hold no usable object, an object has fewer than ``num_views`` pictures, or a
+            prediction's shape is not the ground truth's.
+
     Example::
 
         results = evaluate_folder(model, "VTR_test/Spherical", "ShapeNetVox32", num_views=3)
@@ -176,6 +210,9 @@ def format_evaluation_table(
         metric: the IoU column's key (``iou@0.4``, the paper's, by default; ``iou_best`` for VTR's script's).
         digits: decimals of the percentages.
 
+    Returns:
+        A Markdown table, one line per row, values in % (``-`` for a missing value).
+
     Example:
         >>> r = {"overall": {"iou@0.4": 0.1624, "fscore": 0.0776}, "categories": {}}
         >>> print(format_evaluation_table({"Pix2Vox++": r}))
@@ -198,8 +235,23 @@ def format_evaluation_table(
 
 
 def evaluation_rows(results: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Long-form rows for a CSV: one per method and group (``category`` is ``"all"`` for the overall row),
-    with ``count``, every ``iou@<t>``, ``iou_best`` and ``fscore`` as fractions."""
+    """Long-form rows for a CSV: one per method and group (``category`` is ``"all"`` for the overall row).
+
+    Args:
+        results: method name -> the dict :func:`evaluate_dataset` returns.
+
+    Returns:
+        One dict per method and group, in order: ``method``, ``category``, then the group's ``count``, every
+        ``iou@<t>``, ``iou_best`` and ``fscore`` as fractions (NaN values left out).
+
+    Example:
+        >>> group = {"count": 2, "iou@0.4": 0.5, "iou_best": 0.52, "fscore": 0.3}
+        >>> r = {"overall": group, "categories": {"chair": group}, "best_threshold": 0.3}
+        >>> for row in evaluation_rows({"Ours": r}):
+        ...     print(row["method"], row["category"], row["count"], row["iou@0.4"])
+        Ours all 2 0.5
+        Ours chair 2 0.5
+    """
     rows = []
     for method, result in results.items():
         groups = {"all": result.get("overall", {}), **result.get("categories", {})}
@@ -221,6 +273,16 @@ def evaluation_notes(results: Mapping[str, Mapping[str, Any]], what: str) -> lis
     Returns:
         One line for the set and the metrics, then one per method (its objects per category and its
         best-threshold mIoU).
+
+    Raises:
+        KeyError: a result lacks ``overall``, ``categories``, ``best_threshold`` or a group's ``count`` /
+            ``iou_best``.
+
+    Example:
+        >>> group = {"count": 2, "iou@0.4": 0.5, "iou_best": 0.52, "fscore": 0.3}
+        >>> r = {"overall": group, "categories": {"chair": group}, "best_threshold": 0.3}
+        >>> evaluation_notes({"Ours": r}, "Pix3D chairs")[1]
+        'Ours: 2 objects (chair 2); best-threshold mIoU 52.00 at 0.3'
     """
     notes = [
         f"{what}; mIoU: mean IoU over objects at threshold 0.4 (the paper's); F-score@1 % (community convention, "

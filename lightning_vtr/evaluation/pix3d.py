@@ -61,6 +61,10 @@ def evaluate_pix3d(model: Any, dataset: Pix3DDataset, **kwargs: Any) -> dict[str
         ``{"overall", "categories", "best_threshold"}``, as
         :func:`~lightning_vtr.evaluation.dataset.evaluate_dataset` returns them.
 
+    Raises:
+        ValueError: the dataset is empty, or the predictions' shape is not the voxels' (see
+            :func:`~lightning_vtr.evaluation.dataset.evaluate_dataset`).
+
     Example::
 
         results = evaluate_pix3d(model, Pix3DDataset(read_pix3d("~/data/Pix3D"), resolution=32))
@@ -185,7 +189,22 @@ def frame_check(
 
     Returns:
         The IoU in ``[0, 1]`` (0 when the voxels or the mask are empty); above ~0.8 on an untruncated,
-        unoccluded photograph means the frames agree.
+        unoccluded photograph means the frames agree. With ``return_silhouettes``: ``(iou, projection, mask)``,
+        the two silhouettes ``(size, size)`` bool.
+
+    Raises:
+        ValueError: ``voxel_to_model`` is not 3x3.
+        DatasetFormatError: ``voxel.mat`` is unreadable or not a cubic grid, or the mask's size is not the
+            photograph's.
+        OSError: the photograph or the mask cannot be read.
+
+    Example::
+
+        from lightning_vtr.data import read_pix3d
+        from lightning_vtr.evaluation import frame_check
+
+        record = read_pix3d("~/data/Pix3D", categories=["chair"])[0]
+        iou, projection, mask = frame_check(record, return_silhouettes=True)  # projection, mask: (64, 64) bool
     """
     voxel_to_model = np.asarray(voxel_to_model, dtype=np.float64)
     if voxel_to_model.shape != (3, 3):
@@ -216,7 +235,18 @@ def frame_check(
 
 
 def frame_check_summary(ious: Mapping[str, float]) -> str:
-    """One line: count, mean and minimum of frame-check IoUs, and the worst record."""
+    """One line: count, mean and minimum of frame-check IoUs, and the worst record.
+
+    Args:
+        ious: record key -> :func:`frame_check` IoU.
+
+    Returns:
+        The summary line (``"frame check: no records"`` when ``ious`` is empty).
+
+    Example:
+        >>> frame_check_summary({"chair/0001": 0.91, "chair/0002": 0.84})
+        'frame check on 2 record(s): mean IoU 0.875, min 0.840 (chair/0002)'
+    """
     if not ious:
         return "frame check: no records"
     worst = min(ious, key=lambda key: ious[key])

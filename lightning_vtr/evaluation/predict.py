@@ -61,8 +61,10 @@ _MASK_SUFFIX = "_mask"
 
 # ----------------------------------------------------------------------------------------- the model's inputs
 def make_datamodule(ckpt: str | Path, model: Any, root: str | Path | None = None) -> VTRDataModule:
-    """A :class:`~lightning_vtr.data.VTRDataModule` with the checkpoint's datamodule settings (image recipe,
-    normalisation, background, seed), the model's image size and views, over ``root``.
+    """A :class:`~lightning_vtr.data.VTRDataModule` over ``root`` that prepares images as the model was trained.
+
+    It takes the checkpoint's datamodule settings (image recipe, normalisation, background, seed) and the model's
+    image size and number of views.
 
     Args:
         ckpt: the checkpoint the model came from; a checkpoint without datamodule hyperparameters warns and
@@ -72,6 +74,9 @@ def make_datamodule(ckpt: str | Path, model: Any, root: str | Path | None = None
 
     Returns:
         The datamodule; its ``transform`` is the evaluation transform the model was validated with.
+
+    Raises:
+        FileNotFoundError: ``ckpt`` does not exist.
 
     Example::
 
@@ -257,8 +262,19 @@ def predict_folders(
 
     Yields:
         ``{"name", "display" (V, S, S, 4) uint8 list, "images" (V, 3, H, W), "predicted" (R, R, R),
-        "target" (R, R, R) or None, "viewpoints" None, "captions"}`` per folder; names are the folder names,
-        made unique.
+        "target" (R, R, R) or None, "viewpoints" None, "view_names"}`` per folder; names are the folder names,
+        made unique; ``view_names`` are the pictures' file names.
+
+    Raises:
+        FileNotFoundError: a folder is not a folder, or holds no picture.
+        DataError: a file that is not a picture, a mask of another size than its picture, more than one binvox
+            file, or a ground truth whose shape is not the prediction's.
+
+    Example::
+
+        transform = make_datamodule("last.ckpt", model).transform
+        for result in predict_folders(model, ["photos/chair", "photos/lamp"], transform, device="cpu"):
+            print(result["name"], tuple(result["predicted"].shape))  # chair (32, 32, 32), then lamp ...
     """
     dev = resolve_device(device)
     model.to(dev)
@@ -309,11 +325,10 @@ def predict_dataset(
     batch_size: int = 8,
     device: str = "auto",
 ) -> Iterator[dict[str, Any]]:
-    """Predict a split of a ShapeNet-VTR dataset, each object from ``dm.num_views`` fixed views of each view
-    set: the views ``trainer.test`` sees (:class:`~lightning_vtr.data.dataset.VTRDataset` over the whole split
-    with the datamodule's seed), whichever objects ``limit`` keeps. Yields the dicts of
-    :func:`predict_folders` with ``name`` ``<view_set>/<category>/<object_id>``, the ground truth, the views'
-    viewpoints and ``category``.
+    """Predict a split of a ShapeNet-VTR dataset, each object from ``dm.num_views`` fixed views per view set.
+
+    The views are those ``trainer.test`` sees (:class:`~lightning_vtr.data.dataset.VTRDataset` over the whole
+    split with the datamodule's seed), whichever objects ``limit`` keeps.
 
     Args:
         model: a reconstruction model (moved to ``device``).
@@ -324,8 +339,19 @@ def predict_dataset(
         batch_size: objects per forward pass.
         device: ``"auto"`` or a torch device name (:func:`resolve_device`).
 
+    Yields:
+        Per view set and object, the dicts of :func:`predict_folders` with ``name``
+        ``<view_set>/<category>/<object_id>``, ``target`` the ``(R, R, R)`` ground truth, ``viewpoints`` the
+        views' ``(V, 2)`` (yaw, pitch) in degrees and ``category`` (no ``view_names``).
+
     Raises:
         ValueError: the split holds no objects, or a view set the dataset does not have.
+
+    Example::
+
+        dm = make_datamodule("last.ckpt", model, root="data/shapenet-vtr")
+        results = predict_dataset(model, dm, view_sets=["spherical"], limit=10)
+        entries = list(export_predictions("predictions", results, threshold=0.4))
     """
 
     dev = resolve_device(device)
@@ -419,6 +445,11 @@ def export_predictions(
         ``{"name", "files", "facts"}`` per object, once its files are written: the entries
         :func:`lightning_vtr.export.write_summary` takes; ``facts`` are
         :func:`lightning_vtr.export.prediction_facts`.
+
+    Raises:
+        TypeError: ``threshold`` is not a number.
+        ValueError: ``threshold`` is out of range or ``mesh_format`` unknown (see
+            :func:`lightning_vtr.export.export_prediction`).
 
     Example::
 

@@ -133,6 +133,10 @@ class RobustnessMap:
             ``aligned`` view set), ``None`` when unknown.
         extra: free-form JSON-serialisable notes (the model's name, a checkpoint path), kept by the CSV files.
 
+    Raises:
+        ValueError: a bad ``k``, or ``iou``, ``centres``, ``areas``, ``object_ids`` or ``categories`` whose shapes
+            do not fit ``k`` and each other.
+
     Example:
         >>> m = RobustnessMap.from_iou(np.full((2, 18), 0.5), k=60, object_ids=["a", "b"], categories=["c", "c"])
         >>> m.mean().shape, float(m.overall())
@@ -393,7 +397,29 @@ class RobustnessMap:
 
 
 def read_bins_csv(path: str | Path) -> list[dict[str, Any]]:
-    """The rows of a ``bins.csv`` (:meth:`RobustnessMap.to_csv`) with numbers parsed (``bin``/``objects`` int)."""
+    """The rows of a ``bins.csv`` (:meth:`RobustnessMap.to_csv`) with numbers parsed (``bin``/``objects`` int).
+
+    Args:
+        path: the ``bins.csv`` file.
+
+    Returns:
+        One dict per row, in file order: ``category`` (str), ``bin`` and ``objects`` (int), ``yaw``, ``pitch``
+        (degrees), ``area`` (sphere fraction), ``mean_iou``, ``ci_low`` and ``ci_high`` (float).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        KeyError: a column of :meth:`RobustnessMap.to_csv` is missing.
+        ValueError: a value is not a number.
+
+    Example:
+        >>> import tempfile
+        >>> m = RobustnessMap.from_iou(np.full((2, 18), 0.5), k=60, object_ids=["a", "b"], categories=["c", "c"])
+        >>> with tempfile.TemporaryDirectory() as directory:
+        ...     rows = read_bins_csv(m.to_csv(directory))
+        >>> first = rows[0]
+        >>> len(rows), first["category"], first["bin"], first["mean_iou"], first["objects"]
+        (18, 'all', 0, 0.5, 2)
+    """
     import csv
 
     with open(path, newline="") as f:

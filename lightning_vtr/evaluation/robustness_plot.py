@@ -167,6 +167,12 @@ def plot_difference(
     Raises:
         ValueError: maps on different grids, or an image side below 64 pixels.
         KeyError: no object of ``category`` in one of the maps.
+
+    Example::
+
+        ours = RobustnessMap.from_csv("runs/robustness/ours")
+        baseline = RobustnessMap.from_csv("runs/robustness/baseline")
+        plot_difference(ours, baseline, "runs/robustness/ours-minus-baseline.png", category="chair")
     """
     if first.k != second.k:
         raise ValueError(f"The maps must share their grid to be compared, got K = {first.k} and K = {second.k}")

@@ -87,6 +87,10 @@ def mean_with_interval(values: Sequence[float] | np.ndarray, confidence: float =
     Returns:
         A :class:`Summary`; its ``n`` counts the finite values.
 
+    Raises:
+        TypeError: ``confidence`` is not a number.
+        ValueError: ``confidence`` is outside ``(0, 1)``.
+
     Example:
         >>> s = mean_with_interval([0.2, 0.4])
         >>> round(s.mean, 3), round(s.high - s.mean, 3)
@@ -114,6 +118,9 @@ def spearman_per_object(scores: np.ndarray, loss: np.ndarray) -> np.ndarray:
     Args:
         scores: ``(objects, bins)`` selection scores (higher: the score expects more error).
         loss: ``(objects, bins)`` measured loss, e.g. ``1 - IoU`` of a robustness map.
+
+    Returns:
+        ``(objects,)`` float64 correlations in ``[-1, 1]`` (``nan`` for an object without a ranking).
 
     Raises:
         ValueError: shapes that differ or are not 2-D, or non-finite values.
@@ -266,6 +273,18 @@ def validity_rows(
     Returns:
         Dicts with ``score``, ``spearman``, ``hit_rate``, ``hit_rate_category`` (:class:`Summary` s over objects),
         ``chance``, ``chance_category`` (floats: the mean chance rate) and ``objects``.
+
+    Raises:
+        ValueError: shapes that differ, non-finite values, not one category per object, ``n`` outside
+            ``[1, bins]``, or a ``fraction`` or ``confidence`` out of range.
+
+    Example:
+        >>> loss = np.array([[0.0, 0.1, 0.9, 0.2], [0.8, 0.1, 0.0, 0.3]])
+        >>> scores = {"oracle": loss, "constant": np.zeros((2, 4))}
+        >>> for row in validity_rows(scores, loss, ["chair", "chair"], n=1, fraction=0.25):
+        ...     print(row["score"], row["hit_rate"].mean, row["chance"])
+        oracle 1.0 0.25
+        constant 0.25 0.25
     """
     rows = []
     for name, values in scores.items():
@@ -287,11 +306,26 @@ def validity_rows(
 
 
 def format_validity_table(rows: Sequence[Mapping[str, Any]], *, n: int = 3, fraction: float = 0.1) -> str:
-    """The rows of :func:`validity_rows` as a Markdown table (means with 95 % intervals in brackets).
+    """The rows of :func:`validity_rows` as a Markdown table (means with their intervals in brackets).
 
-    Example::
+    Args:
+        rows: from :func:`validity_rows`.
+        n: the ``n`` the rows were computed with (names the hit-rate columns).
+        fraction: the ``fraction`` the rows were computed with (names the hit-rate columns).
 
-        print(format_validity_table(validity_rows({"paper": paper_scores}, 1 - rmap.iou, rmap.categories)))
+    Returns:
+        The table, one line per row after the header, ending in a newline.
+
+    Raises:
+        KeyError: a row lacks one of the keys :func:`validity_rows` gives.
+
+    Example:
+        >>> loss = np.array([[0.0, 0.1, 0.9, 0.2], [0.8, 0.1, 0.0, 0.3]])
+        >>> rows = validity_rows({"oracle": loss}, loss, ["chair", "chair"], n=1, fraction=0.25)
+        >>> print(format_validity_table(rows, n=1, fraction=0.25))
+        | score | Spearman ρ | top-1 in worst 25 % | Random | ...
+        |---|---|---|---|---|---|---|
+        | oracle | 1.000 [1.000, 1.000] | 1.000 [1.000, 1.000] | 0.250 | ...
     """
     share = f"{fraction * 100:g} %"
     header = (

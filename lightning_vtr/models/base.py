@@ -93,8 +93,25 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             every validation epoch, to any logger (PNG files for CSV); 0 (the default) logs none.
 
     Raises:
-        TypeError: if a size is not an int.
-        ValueError: if a size is not positive.
+        TypeError: if a size or ``log_sheets`` is not an int.
+        ValueError: if a size is not positive, or ``log_sheets`` is negative.
+
+    Example:
+        >>> class MeanShape(VoxelReconstructionModule):  # one learned shape for every input
+        ...     def __init__(self):
+        ...         super().__init__(image_size=32, num_views=2, voxel_resolution=8)
+        ...         self.logits = nn.Parameter(torch.zeros(8, 8, 8))
+        ...
+        ...     def reconstruct(self, images):
+        ...         return {"voxels": torch.sigmoid(self.logits).expand(len(images), 8, 8, 8)}
+        ...
+        ...     def loss(self, outputs, target):
+        ...         return nn.functional.binary_cross_entropy(outputs["voxels"], target)
+        ...
+        ...     def configure_optimizers(self):
+        ...         return torch.optim.Adam(self.parameters(), lr=1e-3)
+        >>> MeanShape().predict_voxels(torch.zeros(4, 2, 3, 32, 32)).shape
+        torch.Size([4, 8, 8, 8])
     """
 
     #: The model's published training-image recipe, a name of :data:`lightning_vtr.data.IMAGE_RECIPES`

@@ -89,6 +89,16 @@ class LRGTSpec:
             (:func:`~lightning_vtr.models.lrgt_decoder.decoder_stage_layout`).
         query_grid: ``q``: the decoder's ``q^3`` learned queries.
         upsample_channels: channels of the 2x upsampling stages; ``R = q 2^len(upsample_channels)``.
+
+    Raises:
+        TypeError: a field of the wrong type (names the field and the value).
+        ValueError: a size below its minimum, a grouping block outside ``[0, depth)``, or head counts that do not
+            divide ``embed_dim`` or the decoder's stage widths.
+
+    Example:
+        >>> spec = dataclasses.replace(LRGT_PRESETS["tiny"], upsample_channels=[16, 4])
+        >>> spec.grid_size, spec.voxel_resolution, spec.upsample_channels
+        (8, 16, (16, 4))
     """
 
     image_size: int
@@ -388,7 +398,8 @@ class LRGT(VoxelReconstructionModule):
         embed_dim: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
         depth: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
         num_heads: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
-        grouping_blocks: architecture override of :class:`LRGTSpec`'s field (0-based block indices); ``None`` keeps the preset's.
+        grouping_blocks: architecture override of :class:`LRGTSpec`'s field (0-based block indices); ``None``
+            keeps the preset's.
         group_stride: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
         num_merged_tokens: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
         merger_k: architecture override of :class:`LRGTSpec`'s field; ``None`` keeps the preset's.
@@ -413,6 +424,15 @@ class LRGT(VoxelReconstructionModule):
 
     Attributes:
         spec: the resolved architecture (the preset with the overrides applied).
+
+    Raises:
+        TypeError: an architecture field or size of the wrong type (see :class:`LRGTSpec`).
+        ValueError: an unknown ``preset``, an architecture that does not fit together (see :class:`LRGTSpec`), or
+            a ``lr`` that is not positive.
+        FileNotFoundError: ``pretrained_encoder`` is neither a URL nor an existing file.
+        WeightsDownloadError: ``pretrained_encoder`` is a URL that cannot be downloaded.
+        KeyError: the ``pretrained_encoder`` checkpoint's keys do not match the encoder (see
+            :func:`~lightning_vtr.models.vit.load_timm_deit`).
 
     Example::
 

@@ -59,6 +59,18 @@ class Pix2VoxSpec:
             ``"torch"`` (PyTorch's defaults).
         two_stage_loss: the default loss: ``True`` for Pix2Vox++'s pretraining loss
             ``10 * (BCE(coarse) + BCE(refined))``, ``False`` for ``BCE(refined)``.
+
+    Example:
+        >>> spec = Pix2VoxSpec(
+        ...     image_size=128,
+        ...     backbone="resnet50",
+        ...     encoder_channels=(512, 256, 256),
+        ...     decoder_channels=(512, 128, 32, 8),
+        ...     refiner_channels=(32, 64, 128),
+        ...     refiner_hidden=2048,
+        ... )
+        >>> spec.backbone_channels, spec.feature_size
+        (512, 4)
     """
 
     image_size: int
@@ -74,10 +86,12 @@ class Pix2VoxSpec:
 
     @property
     def backbone_channels(self) -> int:
+        """Channels of the backbone's feature map (512 for ``"resnet50"``)."""
         return ResNet50Stem.out_channels if self.backbone == "resnet50" else self.small_backbone_channels[-1]
 
     @property
     def backbone_stride(self) -> int:
+        """Downsampling factor of the backbone (8 for ``"resnet50"``)."""
         return ResNet50Stem.stride if self.backbone == "resnet50" else 2 ** len(self.small_backbone_channels)
 
     @property
@@ -558,7 +572,11 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         return model
 
     def reconstruct(self, images: Tensor) -> dict[str, Tensor]:
-        """``images (B, V, 3, H, W)`` -> ``{"voxels", "coarse_voxels": (B, R, R, R), "view_voxels": (B, V, R, R, R)}``."""
+        """The network's outputs for checked images ``(B, V, 3, H, W)``.
+
+        Returns:
+            ``{"voxels", "coarse_voxels": (B, R, R, R), "view_voxels": (B, V, R, R, R)}``.
+        """
         b, v = images.shape[:2]
         features = self.encoder(images.flatten(0, 1))  # (B V, C, h, w)
         raw = self.decoder(features.reshape(b * v, -1, 2, 2, 2))  # (B V, c + 1, R, R, R)

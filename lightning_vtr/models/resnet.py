@@ -67,7 +67,13 @@ def _make_layer(in_channels: int, planes: int, blocks: int, stride: int) -> nn.S
 class ResNet50Stem(nn.Module):
     """ResNet-50 ``conv1 .. layer2``: ``(N, 3, H, W)`` -> ``(N, 512, H / 8, W / 8)``.
 
-    At 224 px the output is ``(N, 512, 28, 28)``, the feature map Pix2Vox++ builds on.
+    At 224 px the output is ``(N, 512, 28, 28)``, the feature map Pix2Vox++ builds on. It takes no arguments;
+    fill it with :func:`load_torchvision_resnet50`.
+
+    Example:
+        >>> import torch
+        >>> ResNet50Stem().eval()(torch.zeros(1, 3, 64, 64)).shape
+        torch.Size([1, 512, 8, 8])
     """
 
     out_channels = 512
@@ -109,6 +115,10 @@ def load_torchvision_resnet50(
         ~lightning_vtr.models.weights.WeightsDownloadError: if a download fails (the message names the
             URL and the cache path).
         ValueError: naming the missing / unexpected keys or mismatched shapes.
+
+    Example:
+        >>> stem = ResNet50Stem()
+        >>> load_torchvision_resnet50(stem, ResNet50Stem().state_dict())  # or "imagenet", a path or a URL
     """
     check_type("source", source, (str, os.PathLike, Mapping), "path, a URL, 'imagenet' or a state dict")
     name = "state dict" if isinstance(source, Mapping) else os.fspath(source)

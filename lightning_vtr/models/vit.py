@@ -1,4 +1,4 @@
-"""A DeiT-style (distilled) Vision Transformer and its transformer layers in plain torch, loadable from timm checkpoints.
+"""A DeiT-style (distilled) Vision Transformer and its layers in plain torch, loadable from timm checkpoints.
 
 LRGT's encoder, written in plain torch (timm is not a dependency). Module and
 parameter names match timm's ``deit_base_distilled_patch16_224`` (``patch_embed.proj``,
@@ -184,6 +184,17 @@ class DistilledVisionTransformer(nn.Module):
         use_prefix_tokens: whether the cls/dist tokens enter the blocks (timm's DeiT) or not (LRGT).
 
     The defaults are DeiT-B (86 M parameters without the heads).
+
+    Raises:
+        TypeError: ``use_prefix_tokens`` is not a bool, or ``image_size``, ``patch_size`` or ``embed_dim`` is
+            not an int.
+        ValueError: ``image_size`` is not a multiple of ``patch_size``, or ``num_heads`` does not divide
+            ``embed_dim``; on call, images of another size than ``image_size``.
+
+    Example:
+        >>> vit = DistilledVisionTransformer(image_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
+        >>> vit(torch.zeros(2, 3, 32, 32)).shape  # cls, dist and 4 x 4 patch tokens
+        torch.Size([2, 18, 32])
     """
 
     #: cls and dist: the rows of ``pos_embed`` (and of a timm checkpoint) before the patch grid.
@@ -319,9 +330,18 @@ def load_timm_deit(
     adapts a checkpoint to a new resolution.
 
     Raises:
+        FileNotFoundError: ``path_or_state_dict`` is a path that is not a file.
         KeyError: a parameter of ``module`` is missing from the checkpoint (and not allowed to be),
             or the checkpoint has a key that ``module`` does not.
-        ValueError: a tensor's shape differs from the parameter it should fill.
+        ValueError: a tensor's shape differs from the parameter it should fill, or the checkpoint's
+            ``pos_embed`` does not hold a square patch grid.
+
+    Example:
+        >>> source = DistilledVisionTransformer(32, 8, 32, depth=1, num_heads=2)  # a 4 x 4 patch grid
+        >>> target = DistilledVisionTransformer(64, 8, 32, depth=1, num_heads=2)  # an 8 x 8 patch grid
+        >>> load_timm_deit(target, source.state_dict())  # pos_embed resized to the 8 x 8 grid
+        >>> target.pos_embed.shape
+        torch.Size([1, 66, 32])
     """
     state = {k: v for k, v in _read_state_dict(path_or_state_dict).items() if not k.startswith(_HEAD_PREFIXES)}
     if "pos_embed" in state:

@@ -154,10 +154,15 @@ def load_weights(
         check_hash: as in :func:`fetch_weights`.
         progress: as in :func:`fetch_weights`.
 
+    Returns:
+        A new dict of parameter names to tensors (on the CPU when read from a file), wrapper removed.
+
     Raises:
         TypeError: if ``source`` is none of these.
-        ValueError: if the file does not hold a mapping of tensors.
-        FileNotFoundError, WeightsDownloadError: see :func:`fetch_weights`.
+        ValueError: if the file or mapping does not hold a mapping of tensors, or for ``"imagenet"`` without a
+            known ``kind``.
+        FileNotFoundError: see :func:`fetch_weights`.
+        WeightsDownloadError: see :func:`fetch_weights`.
 
     Example::
 
