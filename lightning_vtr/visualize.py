@@ -86,7 +86,25 @@ _WHITE = (255, 255, 255)
 
 # --------------------------------------------------------------------------------------------- inputs
 def as_voxel_grid(voxels: Any, name: str = "voxels") -> np.ndarray:
-    """``(R, R, R)`` float or bool ndarray from a tensor or array; ``TypeError``/``ValueError`` naming ``name``."""
+    """``(R, R, R)`` float or bool ndarray from a tensor or array; ``TypeError``/``ValueError`` naming ``name``.
+
+    Args:
+        voxels: ``(R, R, R)`` grid, a :class:`torch.Tensor` (any device) or a :class:`numpy.ndarray`.
+        name: the argument's name in error messages.
+
+    Returns:
+        ``(R, R, R)`` ndarray on the CPU: bool for a bool tensor, float32 for another tensor, an ndarray as given.
+
+    Raises:
+        TypeError: ``voxels`` is neither a tensor nor an ndarray.
+        ValueError: ``voxels`` is not ``(R, R, R)`` with ``R >= 1``.
+
+    Example:
+        >>> as_voxel_grid(torch.ones(2, 2, 2, dtype=torch.bool)).dtype
+        dtype('bool')
+        >>> as_voxel_grid(torch.zeros(2, 2, 2, dtype=torch.float64)).dtype
+        dtype('float32')
+    """
     if isinstance(voxels, Tensor):
         voxels = voxels.detach().cpu()
         voxels = voxels.numpy() if voxels.dtype == torch.bool else voxels.float().numpy()
@@ -125,6 +143,15 @@ def voxel_mesh(occupancy: Any, colors: np.ndarray | None = None) -> trimesh.Trim
 
     Returns:
         a :class:`trimesh.Trimesh` with 2 triangles (4 own vertices) per exposed face; no faces for an empty grid.
+
+    Raises:
+        TypeError: ``occupancy`` is neither a tensor nor an ndarray.
+        ValueError: ``occupancy`` is not ``(R, R, R)`` with ``R >= 1``, or ``colors`` is not ``(R, R, R, 3)``.
+
+    Example:
+        >>> mesh = voxel_mesh(np.ones((2, 2, 2), bool))  # a full grid: the cube [-0.5, 0.5]^3
+        >>> len(mesh.faces), mesh.bounds.tolist()  # 4 exposed cell faces per side, 2 triangles each
+        (48, [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
     """
     occ = as_voxel_grid(occupancy, "occupancy") != 0
     r = occ.shape[0]
@@ -196,6 +223,16 @@ def render_voxels(
 
     Returns:
         ``(V, S, S, 3)`` uint8; an empty grid gives pictures of the background alone.
+
+    Raises:
+        TypeError: ``voxels`` is not a tensor or ndarray, ``threshold`` not a number or ``image_size`` not an int.
+        ValueError: ``voxels`` is not ``(R, R, R)``, ``colors`` not ``(R, R, R, 3)``, ``viewpoints`` not a
+            non-empty ``(V, 2)`` of finite angles, ``threshold`` outside ``[0, 1]`` or ``image_size < 1``.
+
+    Example::
+
+        pictures = render_voxels(predicted[0], [[-45.0, 30.0], [135.0, 30.0]], image_size=128)  # (2, 128, 128, 3)
+        Image.fromarray(pictures[0]).save("prediction.png")
     """
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
     image_size = check_int("image_size", image_size, minimum=1)
@@ -216,6 +253,18 @@ def error_labels(predicted: Any, target: Any, *, threshold: float = DEFAULT_THRE
     Returns:
         ``(R, R, R)`` uint8: :data:`EMPTY`, :data:`CORRECT` (in both), :data:`FALSE_POSITIVE` (predicted only) or
         :data:`FALSE_NEGATIVE` (ground truth only).
+
+    Raises:
+        TypeError: a grid is neither a tensor nor an ndarray, or ``threshold`` is not a number.
+        ValueError: a grid is not ``(R, R, R)``, the two shapes differ, or ``threshold`` is outside ``[0, 1]``.
+
+    Example:
+        >>> predicted = torch.zeros(2, 2, 2)
+        >>> predicted[0] = 0.9  # four voxels predicted
+        >>> target = torch.zeros(2, 2, 2)
+        >>> target[0, 0, 0] = target[1, 1, 1] = 1.0  # two voxels in the ground truth
+        >>> np.bincount(error_labels(predicted, target).ravel())  # EMPTY, CORRECT, FALSE_POSITIVE, FALSE_NEGATIVE
+        array([3, 1, 3, 1])
     """
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)
     pred = _occupancy(predicted, threshold, "predicted")
@@ -248,10 +297,28 @@ def render_error(
     """Render the union of prediction and ground truth, each cell coloured by :func:`error_labels`.
 
     Correct cells are grey, false positives (predicted, not there) vermillion, false negatives (missed) blue
-    (:data:`ERROR_COLORS`). Arguments as in :func:`render_voxels` and :func:`error_labels`.
+    (:data:`ERROR_COLORS`).
+
+    Args:
+        predicted: ``(R, R, R)`` occupancy probabilities (occupied where ``>= threshold``) or a bool grid.
+        target: ``(R, R, R)`` ground truth (occupied where ``>= 0.5``) or a bool grid.
+        viewpoints: ``(V, 2)`` (yaw, pitch) in **degrees**.
+        threshold: binarisation threshold of ``predicted``.
+        image_size: side ``S`` of each picture in pixels.
+        background: RGB (0-255) behind the object.
 
     Returns:
-        ``(V, S, S, 3)`` uint8.
+        ``(V, S, S, 3)`` uint8; two empty grids give pictures of the background alone.
+
+    Raises:
+        TypeError: a grid is not a tensor or ndarray, ``threshold`` not a number or ``image_size`` not an int.
+        ValueError: a grid is not ``(R, R, R)``, the shapes differ, ``viewpoints`` is not a non-empty ``(V, 2)``
+            of finite angles, ``threshold`` is outside ``[0, 1]`` or ``image_size < 1``.
+
+    Example::
+
+        pictures = render_error(predicted[0], target[0], image_size=128)  # (2, 128, 128, 3) at DISPLAY_VIEWPOINTS
+        Image.fromarray(pictures[0]).save("error.png")
     """
     labels = error_labels(predicted, target, threshold=threshold)
     image_size = check_int("image_size", image_size, minimum=1)
@@ -285,6 +352,24 @@ def error_projection_images(
 
     Returns:
         ``(V, S, S, 3)`` uint8.
+
+    Raises:
+        TypeError: a grid is not a tensor or ndarray, ``threshold`` not a number or ``image_size`` not an int.
+        ValueError: a grid is not ``(R, R, R)``, the shapes differ, ``viewpoints`` is not a non-empty ``(V, 2)``
+            of finite angles, ``threshold`` is outside ``[0, 1]`` or ``image_size < 1``.
+
+    Example:
+        A prediction that misses the top filled layer, seen from above and from the side:
+
+        >>> predicted = torch.zeros(4, 4, 4)
+        >>> predicted[:, :, :2] = 0.9
+        >>> target = torch.zeros(4, 4, 4)
+        >>> target[:, :, :3] = 1.0
+        >>> images = error_projection_images(predicted, target, [[0.0, 90.0], [0.0, 0.0]])
+        >>> images.shape
+        (2, 4, 4, 3)
+        >>> (images == ERROR_COLORS[FALSE_NEGATIVE]).all(-1).sum(axis=(1, 2))  # blue (missed) pixels per view
+        array([4, 2])
     """
     from lightning_vtr.selection.projection import error_projection
 
@@ -318,6 +403,14 @@ def display_images(images: Any, normalize: str | None = "auto") -> np.ndarray:
 
     Returns:
         ``(V, H, W, 3)`` uint8.
+
+    Raises:
+        ValueError: ``images`` has another shape, or ``normalize`` is not one of the values above.
+
+    Example:
+        >>> pictures = display_images(torch.zeros(2, 3, 4, 4), normalize="pm1")  # 0 in [-1, 1] is mid-grey
+        >>> pictures.shape, pictures[0, 0, 0]
+        ((2, 4, 4, 3), array([128, 128, 128], dtype=uint8))
     """
     if isinstance(images, np.ndarray) and images.dtype == np.uint8:
         if images.ndim != 4 or images.shape[-1] not in (3, 4):
@@ -376,6 +469,18 @@ def compose_sheet(
     Returns:
         ``(sheet (H, W, 3) uint8, boxes)``: ``boxes[label]`` lists each panel's ``(top, left, bottom, right)``.
         ``H = title + rows x (caption + panel_size + gap)``, ``W = label + max panels x (panel_size + gap)``.
+
+    Raises:
+        TypeError: ``panel_size`` is not an int.
+        ValueError: ``panel_size < 8``.
+
+    Example:
+        >>> panels = [np.zeros((8, 8, 3), np.uint8)] * 2
+        >>> sheet, boxes = compose_sheet([("prediction", panels, ["view 0", "view 1"])], panel_size=16)
+        >>> sheet.shape
+        (38, 156, 3)
+        >>> boxes["prediction"]  # (top, left, bottom, right) of each panel
+        [(18, 116, 34, 132), (18, 136, 34, 152)]
     """
     panel_size = check_int("panel_size", panel_size, minimum=8)
     gap, label_w, caption_h = 4, 112, 14
@@ -501,6 +606,24 @@ def object_sheet(
 
     Returns:
         ``(H, W, 3)`` uint8 (and the boxes when ``return_boxes``).
+
+    Raises:
+        TypeError: a grid is not a tensor or ndarray, or ``threshold`` / ``panel_size`` has the wrong type.
+        ValueError: a grid or ``images`` has the wrong shape, a set of viewpoints is not a non-empty ``(V, 2)``
+            of finite angles, ``input_viewpoints`` does not give one viewpoint per image, or ``threshold``,
+            ``panel_size`` or ``normalize`` is out of range.
+
+    Example::
+
+        sheet = object_sheet(
+            predicted[0],  # (R, R, R) probabilities
+            target[0],
+            batch["images"][0],  # (V, 3, H, W) model input
+            input_viewpoints=batch["viewpoints"][0],
+            selected_viewpoints=ErrorGuidedSelector().select(predicted[:1], target[:1], ["chair"])[0],
+            title="chair/0003",
+        )
+        Image.fromarray(sheet).save("chair_0003.png")
     """
     display = _viewpoints(display_viewpoints)
     captions = [_caption(v) for v in display]
@@ -542,7 +665,22 @@ def object_sheet(
 
 
 def stack_sheets(sheets: Sequence[np.ndarray], gap: int = 6) -> np.ndarray:
-    """Sheets ``(H_i, W_i, 3)`` one under the other on white, ``(sum H_i + gaps, max W_i, 3)`` uint8."""
+    """Sheets ``(H_i, W_i, 3)`` one under the other on white, ``(sum H_i + gaps, max W_i, 3)`` uint8.
+
+    Args:
+        sheets: ``(H_i, W_i, 3)`` uint8 pictures, e.g. from :func:`object_sheet`; each is placed at the left edge.
+        gap: white rows between two sheets, in pixels.
+
+    Returns:
+        ``(sum H_i + gap * (n - 1), max W_i, 3)`` uint8 for ``n`` sheets.
+
+    Raises:
+        ValueError: ``sheets`` is empty.
+
+    Example:
+        >>> stack_sheets([np.zeros((10, 20, 3), np.uint8), np.zeros((5, 30, 3), np.uint8)]).shape
+        (21, 30, 3)
+    """
     if not sheets:
         raise ValueError("`sheets` must hold at least one sheet, got none")
     width = max(s.shape[1] for s in sheets)
@@ -596,7 +734,19 @@ def log_validation_sheets(
         check, no trainer).
 
     Raises:
-        ValueError: ``batch`` lacks ``images`` or ``voxels``, or the shapes do not fit together.
+        TypeError: ``max_objects`` is not an int.
+        ValueError: ``max_objects < 1``, ``batch`` lacks ``images`` or ``voxels``, or the shapes do not fit
+            together.
+
+    Example::
+
+        class Model(L.LightningModule):
+            def validation_step(self, batch, batch_idx):
+                if batch_idx == 0:  # keep the first batch and its predictions
+                    self._sheet_batch = (batch, self.predict_voxels(batch["images"]).detach())
+
+            def on_validation_epoch_end(self):
+                log_validation_sheets(self, *self._sheet_batch, max_objects=4)
     """
     max_objects = check_int("max_objects", max_objects, minimum=1)
     try:

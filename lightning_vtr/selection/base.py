@@ -29,9 +29,20 @@ def check_categories(categories: list[str], batch: int) -> list[str]:
 
     Every selector's :meth:`ViewSelector.select` takes the names alongside ``(B, R, R, R)`` grids.
 
+    Args:
+        categories: one category name per object.
+        batch: the number of objects ``B``.
+
+    Returns:
+        ``categories`` itself, unchanged.
+
     Raises:
         TypeError: ``categories`` is a single string (a common slip) or has no length.
         ValueError: its length is not ``batch``.
+
+    Example:
+        >>> check_categories(["chair", "table"], 2)
+        ['chair', 'table']
     """
     if isinstance(categories, str) or not hasattr(categories, "__len__"):
         raise TypeError(
@@ -56,6 +67,19 @@ class SelectionContext:
         transform: turns ``(T, H, W, 4)`` uint8 RGBA images into model input ``(T, 3, h, w)`` float.
         loss_fn: per-object reconstruction loss ``(pred (B, R, R, R), target (B, R, R, R)) -> (B,)``.
         device: where the model lives.
+
+    Example::
+
+        # what ErrorGuidedViewAugmentation builds for a selector with ``needs_context``
+        context = SelectionContext(
+            model=pl_module,
+            synthesizer=synthesizer,
+            requests=requests,  # one SynthesisRequest per object of the batch
+            transform=datamodule.transform,
+            loss_fn=lambda pred, target: F.binary_cross_entropy(pred, target, reduction="none").flatten(1).mean(1),
+            device=pl_module.device,
+        )
+        views = VIATSelector().select(predicted, target, categories, context=context)  # (B, 3, 2) degrees
     """
 
     model: Any
@@ -110,7 +134,20 @@ class ViewSelector(abc.ABC):
     """Chooses new input viewpoints for a batch of objects.
 
     ``select`` sees the model's predictions and the ground truth (selectors that ignore them, such as
-    Random and Nature, still take them so the callback treats every strategy alike).
+    Random and Nature, still take them so the callback treats every strategy alike). A subclass implements
+    :meth:`select` and sets the class attributes below; selectors that learn across calls also override
+    :meth:`state_dict` and :meth:`load_state_dict` so their state is checkpointed.
+
+    Example:
+        A selector that always looks at the object from the front, 30 degrees up:
+
+        >>> class FrontViews(ViewSelector):
+        ...     num_views = 1
+        ...     def select(self, predicted, target, categories, generator=None, context=None):
+        ...         check_categories(categories, predicted.shape[0])
+        ...         return torch.tensor([0.0, 30.0]).expand(predicted.shape[0], 1, 2)
+        >>> FrontViews().select(torch.rand(2, 4, 4, 4), torch.zeros(2, 4, 4, 4), ["chair", "table"]).shape
+        torch.Size([2, 1, 2])
     """
 
     #: Number of viewpoints returned per object.
@@ -138,7 +175,18 @@ class ViewSelector(abc.ABC):
         generator: torch.Generator | None = None,
         context: SelectionContext | None = None,
     ) -> Tensor:
-        """Viewpoints ``(B, num_views, 2)`` in degrees for predictions / targets ``(B, R, R, R)``."""
+        """Viewpoints ``(B, num_views, 2)`` in degrees for predictions / targets ``(B, R, R, R)``.
+
+        Args:
+            predicted: ``(B, R, R, R)`` occupancy probabilities in ``[0, 1]``.
+            target: ``(B, R, R, R)`` ground-truth occupancy in ``{0, 1}``.
+            categories: ``B`` category names, one per object.
+            generator: the random source of a stochastic selector (``None``: torch's global one).
+            context: the model and synthesizer, for a selector with :attr:`needs_context`; else ``None``.
+
+        Returns:
+            ``(B, num_views, 2)`` (yaw, pitch) in degrees.
+        """
 
     def state_dict(self) -> dict[str, Any]:
         """Learned state to checkpoint (empty for stateless selectors)."""

@@ -4,10 +4,10 @@ The error-guided selector's :func:`~lightning_vtr.selection.projection.error_pro
 error value at the *first hit* along each orthographic ray; that is a hard, piecewise-constant
 function of the viewpoint. MVTN needs gradients with respect to the viewing angles, so this module
 replaces the hard first hit by the opacity a ray accumulates through the volume (one minus its
-transmittance, the volume acting as absorption density): the volume is resampled trilinearly (``F.grid_sample``) on rays laid out with
-:func:`lightning_vtr.geometry.camera_basis` and the image-plane convention of
-:func:`lightning_vtr.geometry.orthographic_pixel_coords`, so the maps line up pixel for pixel with
-the rest of the package. As ``density`` grows, the soft map tends to the hard first-hit map, which
+transmittance, the volume acting as absorption density): the volume is resampled trilinearly
+(``F.grid_sample``) on rays laid out with :func:`lightning_vtr.geometry.camera_basis` and the image-plane
+convention of :func:`lightning_vtr.geometry.orthographic_pixel_coords`, so the maps line up pixel for pixel
+with the rest of the package. As ``density`` grows, the soft map tends to the hard first-hit map, which
 ``hard=True`` computes directly (nearest-voxel sampling, not differentiable).
 """
 
@@ -113,6 +113,23 @@ def soft_error_projection(
         ValueError: if ``volumes`` is not ``(B, R, R, R)``, ``viewpoints`` has the wrong shape,
             or a size, ``half_extent`` or ``density`` is not positive.
         TypeError: if a size is not an int or ``half_extent`` / ``density`` is not a number.
+
+    Example:
+        A 2x2 patch of error on the top layer of a ``4^3`` grid, seen from above:
+
+        >>> volume = torch.zeros(1, 4, 4, 4)
+        >>> volume[0, 1:3, 1:3, 3] = 1.0
+        >>> viewpoints = torch.tensor([[0.0, 90.0]], requires_grad=True)
+        >>> soft_error_projection(volume, viewpoints, hard=True)[0, 0]
+        tensor([[0., 0., 0., 0.],
+                [0., 1., 1., 0.],
+                [0., 1., 1., 0.],
+                [0., 0., 0., 0.]])
+        >>> round(float(soft_error_projection(volume, viewpoints, density=1000.0).detach().sum()), 3)
+        4.0
+        >>> soft_error_projection(volume, viewpoints).sum().backward()  # gradients reach the angles
+        >>> viewpoints.grad.shape
+        torch.Size([1, 2])
     """
     volumes, vp = _check_inputs(volumes, viewpoints)
     resolution = volumes.shape[-1]

@@ -83,17 +83,24 @@ class MVTNSelector(ViewSelector):
             (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
         density: sharpness of the soft projection (opacity per voxel of error crossed).
         image_size: side of the projected maps (default ``R``).
-        width: channels of the first convolution; hidden: width of the MLP.
+        width: channels of the first convolution (the second has ``2 * width``).
+        hidden: width of the hidden layer of the MLP head.
         seed: seed of the network's initialisation.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
         ValueError: for a bad count, bound, pitch, learning rate, threshold, density or ``input``.
 
-    Example::
-
-        selector = MVTNSelector(steps=10)
-        views = selector.select(pred, target, categories)  # (B, 3, 2) degrees
+    Example:
+        >>> selector = MVTNSelector(steps=1)
+        >>> selector.base_views()  # what the untrained network returns
+        tensor([[   0.,   30.],
+                [ 120.,   30.],
+                [-120.,   30.]])
+        >>> predicted = torch.rand(2, 8, 8, 8, generator=torch.Generator().manual_seed(0))
+        >>> target = (predicted > 0.5).float()
+        >>> selector.select(predicted, target, ["chair", "chair"]).shape  # (B, num_views, 2) degrees
+        torch.Size([2, 3, 2])
     """
 
     uses_pool = False
@@ -166,6 +173,15 @@ class MVTNSelector(ViewSelector):
             categories: ``B`` category names (unused; one network serves every category).
             generator: unused (training is deterministic given the seed and the data).
             context: unused.
+
+        Returns:
+            ``(B, num_views, 2)`` (yaw, pitch) in degrees, yaw wrapped into ``[-180, 180)``, in the dtype of
+            ``predicted``.
+
+        Raises:
+            TypeError: ``predicted`` / ``target`` are not float or bool tensors, or ``categories`` is a string.
+            ValueError: the grids' shapes differ or are not ``(B, R, R, R)``, ``categories`` does not hold ``B``
+                names, or the network predicts non-finite views (training diverged; lower ``lr``).
         """
         # 1. check inputs and build the volumes the network reads and the projection scores
         predicted, target = check_volume_pair(predicted, target)

@@ -35,10 +35,14 @@ class NatureSelector(ViewSelector):
         TypeError: an argument of the wrong type (e.g. a pitch that is not a number).
         ValueError: naming the argument and the bad value.
 
-    Example::
-
-        selector = NatureSelector(pitch={"lamp": 20.0}, pitch_jitter=5.0)
-        views = selector.select(pred, gt, ["lamp", "car"])  # (2, 3, 2)
+    Example:
+        >>> predicted, target = torch.rand(2, 4, 4, 4), torch.zeros(2, 4, 4, 4)
+        >>> views = NatureSelector(pitch={"lamp": 20.0}).select(predicted, target, ["lamp", "car"])
+        >>> views.shape
+        torch.Size([2, 3, 2])
+        >>> views[..., 1]  # pitch in degrees: the lamp's from the mapping, the car's the default 0
+        tensor([[20., 20., 20.],
+                [ 0.,  0.,  0.]])
     """
 
     uses_pool = False

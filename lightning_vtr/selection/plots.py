@@ -36,7 +36,8 @@ def plot_error_projections(
     viewpoints get a red frame.
 
     Args:
-        volume_error: ``(R, R, R)`` error volume (e.g. from :func:`error_volume`).
+        volume_error: ``(R, R, R)`` error volume (e.g. one object's
+            :func:`~lightning_vtr.selection.projection.error_volume`).
         k: bin interval ``K`` in degrees (must divide 180).
         chosen: ``(n, 2)`` selected viewpoints in degrees, or ``None``.
         path: PNG file to write (parent directories are created).
@@ -47,8 +48,15 @@ def plot_error_projections(
         ``figure`` is a :class:`matplotlib.figure.Figure`.
 
     Raises:
-        TypeError: ``volume_error`` is not a tensor.
+        TypeError: ``volume_error`` is not a tensor, or ``k`` is not a number.
         ValueError: ``volume_error`` is not ``(R, R, R)``, a bad ``k`` or bad ``chosen`` viewpoints.
+
+    Example::
+
+        error = error_volume(predicted[:1], target[:1])[0]  # (R, R, R)
+        chosen = ErrorGuidedSelector().select(predicted[:1], target[:1], ["chair"])[0]  # (3, 2) degrees
+        drawn = plot_error_projections(error, k=30, chosen=chosen, path="figures/error_projections.png")
+        drawn["grid"]  # (6, 12): pitch bins x yaw bins
     """
     k = check_bin_interval(k)
     if not isinstance(volume_error, Tensor):
@@ -97,6 +105,13 @@ def plot_pool_distribution(pool: ViewpointPool, path: str | Path = "viewpoint_po
     Returns:
         ``{"path", "figure", "categories" (drawn order), "points" {category: number of viewpoints drawn}}``;
         ``figure`` is a :class:`matplotlib.figure.Figure`. An empty pool gives one empty panel titled accordingly.
+
+    Example::
+
+        pool = ViewpointPool(num_views=3)
+        pool.add("chair", "c1", torch.tensor([[0.0, 30.0], [120.0, 30.0], [-120.0, 30.0]]))
+        drawn = plot_pool_distribution(pool, path="figures/viewpoint_pool.png")
+        drawn["points"]  # {"chair": 3}
     """
     categories = pool.categories()
     count = max(len(categories), 1)

@@ -48,11 +48,15 @@ class ViewpointPool:
         TypeError: ``capacity`` or ``num_views`` is not an int.
         ValueError: naming the argument and the bad value.
 
-    Example::
-
-        pool = ViewpointPool(num_views=3)
-        pool.add("chair", "c1", selected[0])        # (3, 2) degrees
-        views = pool.sample("chair", object_id="c2", generator=torch.Generator().manual_seed(0))
+    Example:
+        >>> pool = ViewpointPool(num_views=3)
+        >>> pool.add("chair", "c1", torch.tensor([[0.0, 30.0], [120.0, 30.0], [-120.0, 30.0]]))  # degrees
+        >>> pool.sample("chair", object_id="c2", generator=torch.Generator().manual_seed(0))  # the set found on c1
+        tensor([[   0.,   30.],
+                [ 120.,   30.],
+                [-120.,   30.]])
+        >>> pool.sample("table", generator=torch.Generator().manual_seed(0)).shape  # empty: uniform viewpoints
+        torch.Size([3, 2])
     """
 
     def __init__(

@@ -110,12 +110,19 @@ def check_volumes(volumes: Tensor, name: str = "volumes") -> Tensor:
     A bool tensor is converted to the default float dtype; a float tensor is returned as is.
 
     Args:
-        volumes: the grids to check.
+        volumes: ``(B, R, R, R)`` grids, floating-point or bool.
         name: the argument's name in error messages.
+
+    Returns:
+        ``volumes`` itself if floating-point, else a copy in the default float dtype.
 
     Raises:
         TypeError: ``volumes`` is not a tensor, or is neither floating-point nor bool.
         ValueError: another shape, or an empty grid (``R = 0``).
+
+    Example:
+        >>> check_volumes(torch.ones(1, 2, 2, 2, dtype=torch.bool)).dtype
+        torch.float32
     """
     _check_grid_shape(volumes, name)
     if volumes.dtype == torch.bool:
@@ -131,12 +138,21 @@ def check_volume_pair(predicted: Tensor, target: Tensor) -> tuple[Tensor, Tensor
     ``predicted`` and ``target`` must be ``(B, R, R, R)`` tensors of the same shape (see
     :func:`check_volumes`); a custom selector can call this first to fail with the package's messages.
 
+    Args:
+        predicted: ``(B, R, R, R)`` predicted occupancy, floating-point or bool.
+        target: ``(B, R, R, R)`` ground-truth occupancy, floating-point or bool.
+
     Returns:
-        ``(predicted, target)`` as float tensors (bool grids converted).
+        ``(predicted, target)`` as float tensors (bool grids converted to the default float dtype).
 
     Raises:
-        TypeError: either is not a floating-point or bool tensor.
+        TypeError: either is not a tensor, or is neither floating-point nor bool.
         ValueError: the shapes differ (the message names both) or are not ``(B, R, R, R)`` with ``R >= 1``.
+
+    Example:
+        >>> predicted, target = check_volume_pair(torch.rand(2, 4, 4, 4), torch.zeros(2, 4, 4, 4, dtype=torch.bool))
+        >>> target.dtype, tuple(target.shape)
+        (torch.float32, (2, 4, 4, 4))
     """
     if not isinstance(predicted, Tensor) or not isinstance(target, Tensor):
         raise TypeError(
@@ -176,6 +192,15 @@ def error_volume(
     Raises:
         ValueError: on mismatched shapes (naming both) or a bad ``threshold`` / ``mode`` / ``mask``.
         TypeError: a non-tensor input or a non-number ``threshold``.
+
+    Example:
+        >>> predicted = torch.full((1, 2, 2, 2), 0.9)  # all occupied
+        >>> target = torch.ones(1, 2, 2, 2)
+        >>> target[0, 0] = 0  # half of the truth is empty: 4 false positives
+        >>> error_volume(predicted, target).sum()
+        tensor(4.)
+        >>> error_volume(predicted, target, mask="gt").sum()  # only errors inside the truth
+        tensor(0.)
     """
     predicted, target = check_volume_pair(predicted, target)
     check_float("threshold", threshold, minimum=0.0, maximum=1.0)
@@ -617,7 +642,8 @@ def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool 
 
 
 def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
-    """``(B, C, k)`` sums over slots of the ``k``-column rows (:func:`_value_rows`) of the voxels ``best (B, C, S)`` hit.
+    """``(B, C, k)`` sums over slots of the ``k``-column rows (:func:`_value_rows`) of the voxels ``best (B, C, S)``
+    hit.
 
     The keys are turned into row numbers in place (``best`` is overwritten); one ``embedding_bag`` gathers and
     sums, without a ``(B, C, S)`` tensor of values. It adds a bag's values one after the other in slot order,
@@ -666,6 +692,15 @@ def projection_scores(
     Raises:
         TypeError: ``volumes`` is not a floating-point or bool tensor.
         ValueError: ``volumes`` is not ``(B, R, R, R)`` or ``reduction`` is unknown.
+
+    Example:
+        >>> volume = torch.zeros(1, 4, 4, 4)
+        >>> volume[0, 1:3, 1:3, 3] = 1.0  # a 2x2 patch of error on the top layer
+        >>> viewpoints = torch.tensor([[0.0, 90.0], [0.0, 0.0]])  # from above, from the side
+        >>> projection_scores(volume, viewpoints)
+        tensor([[4., 2.]])
+        >>> torch.equal(projection_scores(volume, viewpoints), view_scores(error_projection(volume, viewpoints)))
+        True
     """
     # Shape only: converting a bool grid to float would cost what this function exists to save.
     _check_grid_shape(volumes, "volumes")
@@ -839,6 +874,25 @@ def error_projection(
     Raises:
         ValueError: for a non-cubic or empty grid, no viewpoints, or a bad ``image_size`` / ``half_extent``.
         TypeError: for a non-tensor ``volumes``, a non-int ``image_size`` or a non-number ``half_extent``.
+
+    Example:
+        A 2x2 patch of error on the top layer of a ``4^3`` grid, seen from above and from the side:
+
+        >>> volume = torch.zeros(4, 4, 4)
+        >>> volume[1:3, 1:3, 3] = 1.0
+        >>> maps = error_projection(volume, torch.tensor([[0.0, 90.0], [0.0, 0.0]]))
+        >>> maps.shape
+        torch.Size([2, 4, 4])
+        >>> maps[0]
+        tensor([[0., 0., 0., 0.],
+                [0., 1., 1., 0.],
+                [0., 1., 1., 0.],
+                [0., 0., 0., 0.]])
+        >>> maps[1]
+        tensor([[0., 0., 0., 0.],
+                [0., 1., 1., 0.],
+                [0., 0., 0., 0.],
+                [0., 0., 0., 0.]])
     """
     unbatched = isinstance(volumes, Tensor) and volumes.ndim == 3
     vol = check_volumes(volumes[None] if unbatched else volumes, "volumes")
@@ -882,6 +936,15 @@ def view_scores(projections: Tensor, *, reduction: Literal["sum", "mean"] = "sum
     Raises:
         TypeError: ``projections`` is not a tensor.
         ValueError: another shape, or an unknown ``reduction``.
+
+    Example:
+        >>> volume = torch.zeros(1, 4, 4, 4)
+        >>> volume[0, 1:3, 1:3, 3] = 1.0  # a 2x2 patch of error on the top layer
+        >>> maps = error_projection(volume, torch.tensor([[0.0, 90.0], [0.0, 0.0]]))  # from above, from the side
+        >>> view_scores(maps)
+        tensor([[4., 2.]])
+        >>> view_scores(maps, reduction="mean")
+        tensor([[1., 1.]])
     """
     _check_tensor_ndim(projections, "projections", 4, "(B, V, S, S)")
     check_choice("reduction", reduction, ("sum", "mean"))
@@ -906,6 +969,14 @@ def nearest_bins(viewpoints: Tensor, k: int = 30) -> Tensor:
 
     Returns:
         ``(...)`` int64 flat bin indices ``i_pitch * (360 / K) + i_yaw`` (0-based).
+
+    Raises:
+        TypeError: ``k`` is not a number.
+        ValueError: a ``k`` that does not divide 180, or ``viewpoints`` not ``(..., 2)`` or not finite.
+
+    Example:
+        >>> nearest_bins(torch.tensor([[-180.0, -90.0], [0.0, 0.0], [179.0, 90.0]]), k=90)
+        tensor([0, 6, 7])
     """
     k = check_bin_interval(k)
     vp = check_viewpoints(viewpoints).to(torch.float64)
@@ -922,9 +993,21 @@ def top_bins(scores: Tensor, n: int = 3, *, generator: torch.Generator | None = 
     common: with a binary error a view and its antipode see mirror-image silhouettes and score the same,
     and a fixed order would always favour the lower-index (southern, western) bin.
 
+    Args:
+        scores: ``(B, V)`` view scores, e.g. from :func:`projection_scores`.
+        n: how many indices to keep per row, ``1 <= n <= V``.
+        generator: the random source of the tie order (``None``: torch's global one).
+
+    Returns:
+        ``(B, n)`` int64 column indices into ``scores``, on its device.
+
     Raises:
         TypeError: ``scores`` is not a tensor or ``n`` is not an int.
         ValueError: ``scores`` is not ``(B, V)`` or ``n`` is not in ``[1, V]``.
+
+    Example:
+        >>> top_bins(torch.tensor([[0.1, 0.9, 0.5, 0.7]]), 2)
+        tensor([[1, 3]])
     """
     _check_tensor_ndim(scores, "scores", 2, "(B, V)")
     check_int("n", n, minimum=1, maximum=scores.shape[1])
@@ -964,6 +1047,15 @@ def select_views(
     Raises:
         TypeError: ``scores`` is not a tensor, or ``n`` / ``sigma`` has the wrong type.
         ValueError: a bad ``k``, ``scores`` not ``(B, V)`` for that ``k``, ``n`` out of range or ``sigma < 0``.
+
+    Example:
+        With ``K = 90`` there are 8 bins; ``sigma=0`` returns the centres of the best two:
+
+        >>> select_views(torch.arange(8.0)[None], k=90, n=2, sigma=0.0)
+        tensor([[[135.,  45.],
+                 [ 45.,  45.]]])
+        >>> select_views(torch.rand(4, 8), k=90, generator=torch.Generator().manual_seed(0)).shape
+        torch.Size([4, 3, 2])
     """
     k = check_bin_interval(k)
     candidates = candidate_viewpoints(k)
@@ -983,10 +1075,27 @@ def sample_around_bins(
 ) -> Tensor:
     """Viewpoints ``(..., 2)`` in degrees drawn from ``N(centre of bin, sigma)`` for flat bin indices ``(...)``.
 
-    ``sigma`` defaults to ``K / 6``; yaw is wrapped and pitch clamped.
+    Yaw and pitch are drawn independently; yaw is then wrapped into ``[-180, 180)`` and pitch clamped into
+    ``[-90, 90]``.
+
+    Args:
+        bins: ``(...)`` integer flat bin indices in :func:`~lightning_vtr.geometry.candidate_viewpoints` order
+            (as :func:`nearest_bins` and :func:`top_bins` return them).
+        k: bin interval ``K`` in degrees (must divide 180).
+        sigma: standard deviation in degrees; ``None`` means the paper's ``K / 6``.
+        generator: the random source (``None``: torch's global one).
+
+    Returns:
+        ``(..., 2)`` float64 (yaw, pitch) in degrees, on the device of ``bins``.
 
     Raises:
+        TypeError: ``k`` or ``sigma`` is not a number.
         ValueError: a bad ``k`` or a negative ``sigma``.
+
+    Example:
+        >>> sample_around_bins(torch.tensor([0, 6]), 90, sigma=0.0)  # the bins' centres
+        tensor([[-135.,  -45.],
+                [  45.,   45.]], dtype=torch.float64)
     """
     k = check_bin_interval(k)
     sigma = k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)

@@ -33,9 +33,11 @@ class RandomSelector(ViewSelector):
         TypeError: an argument of the wrong type (e.g. a range that is not a pair of numbers).
         ValueError: naming the argument and the bad value.
 
-    Example::
-
-        views = RandomSelector(num_views=3).select(pred, gt, cats, generator=torch.Generator().manual_seed(0))
+    Example:
+        >>> predicted, target = torch.rand(2, 4, 4, 4), torch.zeros(2, 4, 4, 4)
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> RandomSelector(num_views=3).select(predicted, target, ["chair", "car"], generator=generator).shape
+        torch.Size([2, 3, 2])
     """
 
     uses_pool = False

@@ -42,13 +42,18 @@ def make_selector(name: str, **kwargs: Any) -> ViewSelector:
             class with the preset's arguments).
         kwargs: arguments of the selector class; over a preset's.
 
+    Returns:
+        A new instance of the registered :class:`~lightning_vtr.selection.base.ViewSelector` subclass.
+
     Raises:
         ValueError: ``name`` is in neither :data:`SELECTORS` nor :data:`SELECTOR_PRESETS`.
 
-    Example::
-
-        make_selector("paper")  # ErrorGuidedSelector(score="paper", min_separation=None, temperature=None)
-        make_selector("random", mode="area")
+    Example:
+        >>> selector = make_selector("paper")  # ErrorGuidedSelector(score="paper", min_separation=None, ...)
+        >>> type(selector).__name__, selector.score
+        ('ErrorGuidedSelector', 'paper')
+        >>> make_selector("random", mode="area").mode
+        'area'
     """
     check_choice("name", name, [*SELECTORS, *SELECTOR_PRESETS])
     if name in SELECTOR_PRESETS:

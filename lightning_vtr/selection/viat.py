@@ -122,9 +122,8 @@ class VIATSelector(ViewSelector):
     (+120 and +240 degrees for 3 views, the paper's adaptation), at the same pitch.
 
     Cost per call: ``iterations * population * num_views`` synthesized images and
-    ``iterations * population`` model predictions per object; the defaults (5 x 8 x 3 = 120 renders
-    per object) keep an epoch-end search on a few objects to seconds with the render synthesizer.
-    Distributions persist across calls (a warm start each epoch) and are checkpointed by
+    ``iterations * population`` model predictions per object (with the defaults, 5 x 8 x 3 = 120 images
+    per object). Distributions persist across calls (a warm start each epoch) and are checkpointed by
     :meth:`state_dict`. Categories are independent; with DDP each rank learns from its own objects
     unless the caller merges states.
 

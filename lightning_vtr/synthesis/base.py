@@ -42,6 +42,20 @@ class SynthesisRequest:
         source_viewpoints: ``(S, 2)`` (yaw, pitch) in degrees of ``source_images``.
         target_viewpoints: ``(T, 2)`` (yaw, pitch) in degrees to synthesize.
         mesh_path: the object's normalised mesh, when the dataset has one (the render synthesizer needs it).
+        extra: free-form data about the object for a custom synthesizer; the package's synthesizers do not read
+            it (:class:`~lightning_vtr.synthesis.cache.CachedSynthesizer` passes it on to the one it wraps).
+
+    Example:
+        >>> import torch
+        >>> request = SynthesisRequest(
+        ...     object_id="0001",
+        ...     category="chair",
+        ...     source_images=np.zeros((1, 64, 64, 4), np.uint8),
+        ...     source_viewpoints=torch.tensor([[0.0, 30.0]]),
+        ...     target_viewpoints=torch.tensor([[90.0, 30.0], [180.0, 30.0]]),
+        ... )
+        >>> request.target_viewpoints.shape, request.mesh_path
+        (torch.Size([2, 2]), None)
     """
 
     object_id: str
@@ -57,7 +71,25 @@ class Synthesizer(abc.ABC):
     """Turns :class:`SynthesisRequest` s into images.
 
     Subclasses implement :meth:`synthesize`. Outputs are ``(T, H, W, 4)`` uint8 RGBA arrays at
-    ``image_size`` (alpha 255 where the synthesizer cannot tell the object from the background).
+    ``image_size`` (alpha 255 where the synthesizer cannot tell the object from the background). A subclass
+    whose output depends on settings returns them in :meth:`config_key`, so cached views of other settings
+    are not reused.
+
+    Example:
+        A synthesizer that returns blank images:
+
+        >>> class Blank(Synthesizer):
+        ...     image_size = 32
+        ...     needs_source_images = False
+        ...     def synthesize(self, requests):
+        ...         return [np.zeros((len(r.target_viewpoints), 32, 32, 4), np.uint8) for r in requests]
+        >>> import torch
+        >>> request = SynthesisRequest("0001", "chair", np.zeros((0, 32, 32, 4), np.uint8),
+        ...                            torch.zeros(0, 2), torch.tensor([[0.0, 30.0], [90.0, 30.0]]))
+        >>> [images.shape for images in Blank().synthesize([request])]
+        [(2, 32, 32, 4)]
+        >>> Blank().config_key()
+        'Blank'
     """
 
     image_size: int = 256

@@ -64,11 +64,11 @@ class SynthesisCache:
     Args:
         root: cache directory (created on first write).
 
-    Example:
-        >>> cache = SynthesisCache(tmp_dir)  # doctest: +SKIP
-        >>> cache.put("chair_0001", (30.0, 15.0), "Zero123Synthesizer(...)", image)  # doctest: +SKIP
-        >>> cache.get("chair_0001", (30.0, 15.0), "Zero123Synthesizer(...)").shape  # doctest: +SKIP
-        (256, 256, 4)
+    Example::
+
+        cache = SynthesisCache("cache/views")
+        cache.put("chair_0001", (30.0, 15.0), synthesizer.config_key(), image)  # image: (256, 256, 4) uint8
+        cache.get("chair_0001", (30.0, 15.0), synthesizer.config_key()).shape  # (256, 256, 4)
     """
 
     def __init__(self, root: str | os.PathLike) -> None:
@@ -147,8 +147,10 @@ class CachedSynthesizer(Synthesizer):
         synthesizer: the synthesizer to wrap.
         cache_dir: the cache root (see :class:`SynthesisCache`).
 
-    Example:
-        >>> synth = CachedSynthesizer(Zero123Synthesizer.from_pretrained(path), "cache/zero123")  # doctest: +SKIP
+    Example::
+
+        synth = CachedSynthesizer(Zero123Synthesizer.from_pretrained(weights_dir), "cache/zero123")
+        images = synth.synthesize(requests)  # generated once; later calls read the cached PNGs
     """
 
     def __init__(self, synthesizer: Synthesizer, cache_dir: str | os.PathLike) -> None:

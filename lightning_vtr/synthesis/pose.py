@@ -101,6 +101,16 @@ def relative_pose(
 
     Raises:
         ValueError: an unknown ``embedding`` or malformed viewpoints.
+
+    Example:
+        From the horizon to 30 degrees up, same yaw: the polar angle drops by 30 degrees (``pi / 6``):
+
+        >>> relative_pose(torch.tensor([0.0, 0.0]), torch.tensor([0.0, 30.0]))
+        tensor([-0.5236,  0.0000,  1.0000,  0.0000])
+        >>> relative_pose(torch.tensor([0.0, 0.0]), torch.tensor([0.0, 30.0]), "stable")  # 4th: source polar
+        tensor([-0.5236,  0.0000,  1.0000,  1.5708])
+        >>> relative_pose(torch.tensor([0.0, 0.0]), torch.tensor([[0.0, 30.0], [90.0, 0.0], [180.0, 0.0]])).shape
+        torch.Size([3, 4])
     """
     check_choice("embedding", embedding, POSE_EMBEDDINGS)
     source = check_viewpoints(source, "source")
@@ -127,6 +137,15 @@ def nearest_source_view(source_viewpoints: Tensor, target_viewpoints: Tensor) ->
 
     Returns:
         ``(T,)`` long tensor of indices into ``source_viewpoints`` (ties go to the lowest index).
+
+    Raises:
+        ValueError: ``source_viewpoints`` is not ``(S, 2)`` with ``S >= 1``, ``target_viewpoints`` is not
+            ``(T, 2)``, or either holds non-finite angles.
+
+    Example:
+        >>> sources = torch.tensor([[0.0, 0.0], [180.0, 0.0]])
+        >>> nearest_source_view(sources, torch.tensor([[30.0, 10.0], [-150.0, 0.0], [170.0, 60.0]]))
+        tensor([0, 1, 1])
     """
     src = check_viewpoints(source_viewpoints, "source_viewpoints")
     tgt = check_viewpoints(target_viewpoints, "target_viewpoints")

@@ -32,6 +32,19 @@ class RenderSynthesizer(Synthesizer):
         ValueError: ``image_size < 1`` or ``max_cached_meshes < 0``; in :meth:`check_serves` (the callback's
             ``setup``), for a dataset whose objects have no mesh; at synthesis time, for a request without a
             mesh path (naming the object).
+
+    Example::
+
+        synthesizer = RenderSynthesizer(image_size=128)
+        request = SynthesisRequest(
+            object_id="0001",
+            category="chair",
+            source_images=np.zeros((0, 128, 128, 4), np.uint8),  # not read: the mesh is enough
+            source_viewpoints=torch.zeros(0, 2),
+            target_viewpoints=torch.tensor([[45.0, 30.0], [-135.0, 30.0]]),  # degrees
+            mesh_path=record.mesh_path,  # the dataset's normalised mesh of the object
+        )
+        images = synthesizer.synthesize([request])  # [(2, 128, 128, 4) uint8 RGBA]
     """
 
     needs_source_images = False

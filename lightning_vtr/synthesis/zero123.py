@@ -146,9 +146,10 @@ class Zero123Synthesizer(Synthesizer):
         TypeError: for an argument of the wrong type (e.g. a float ``image_size``).
         ValueError: for an out-of-range argument.
 
-    Example:
-        >>> synth = Zero123Synthesizer.from_pretrained("bennyguo/zero123-xl-diffusers", image_size=128)  # doctest: +SKIP
-        >>> images = synth.synthesize(requests)  # one (T, 128, 128, 4) uint8 array per request  # doctest: +SKIP
+    Example::
+
+        synth = Zero123Synthesizer.from_pretrained("bennyguo/zero123-xl-diffusers", image_size=128)
+        images = synth.synthesize(requests)  # one (T, 128, 128, 4) uint8 array per request
     """
 
     def __init__(
