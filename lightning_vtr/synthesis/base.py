@@ -86,8 +86,9 @@ class Synthesizer(abc.ABC):
         >>> import torch
         >>> request = SynthesisRequest("0001", "chair", np.zeros((0, 32, 32, 4), np.uint8),
         ...                            torch.zeros(0, 2), torch.tensor([[0.0, 30.0], [90.0, 30.0]]))
-        >>> [images.shape for images in Blank().synthesize([request])]
-        [(2, 32, 32, 4)]
+        >>> images = Blank().synthesize([request])
+        >>> len(images), images[0].shape
+        (1, (2, 32, 32, 4))
         >>> Blank().config_key()
         'Blank'
     """
