@@ -81,9 +81,9 @@ def reference_gaps(obj: griffe.Object) -> list[str]:
     undocumented = [name for name in _parameters(obj) if name not in documented]
     if undocumented and not is_exception:
         gaps.append(f"arguments {undocumented}")
-    if obj.kind.value == "function" and obj.returns is not None and str(obj.returns) != "None":
-        if not kinds & {"returns", "yields"}:
-            gaps.append("a Returns section")
+    returns_value = obj.kind.value == "function" and obj.returns is not None and str(obj.returns) != "None"
+    if returns_value and not kinds & {"returns", "yields"}:
+        gaps.append("a Returns section")
     if not is_exception and "examples" not in kinds and not re.search(r"^\s*Example", docstring.value, re.M):
         gaps.append("an example")
     return gaps

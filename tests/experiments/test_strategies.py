@@ -94,6 +94,8 @@ PAPER_RESOLVED = {
         "eps": 0.0,
         "relative": False,
         "model_batch_size": 72,
+        "map_objects": 2,
+        "map_momentum": 0.3,
     },
     "callback_kwargs": {
         "fraction": 0.05,
