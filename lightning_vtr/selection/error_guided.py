@@ -39,6 +39,14 @@ SCORES: dict[str, tuple[Literal["binary", "soft"], Literal["gt"] | None, Literal
 OBJECT_SCORES: tuple[str, ...] = ("paper", "released", "visible", "input")
 
 
+def _rows_by_category(categories: list[str]) -> dict[str, list[int]]:
+    """The batch rows of each category, categories in order of first appearance."""
+    rows_of: dict[str, list[int]] = {}
+    for row, category in enumerate(categories):
+        rows_of.setdefault(category, []).append(row)
+    return rows_of
+
+
 def relative_to_category(scores: Tensor, categories: list[str]) -> Tensor:
     """``(B, V)`` view scores over their category's mean per view, taken over the objects with any error.
 
@@ -47,10 +55,7 @@ def relative_to_category(scores: Tensor, categories: list[str]) -> Tensor:
     """
     check_categories(categories, scores.shape[0])
     relative = torch.zeros_like(scores)
-    rows_of: dict[str, list[int]] = {}
-    for row, category in enumerate(categories):
-        rows_of.setdefault(category, []).append(row)
-    for rows in rows_of.values():
+    for rows in _rows_by_category(categories).values():
         index = torch.tensor(rows, device=scores.device)
         group = scores.index_select(0, index)
         erring = group[group.sum(1) > 0]
@@ -335,9 +340,7 @@ class ErrorGuidedSelector(ViewSelector):
                 "ErrorGuidedViewAugmentation callback passes one"
             )
         n_bins = self.candidates.shape[0]
-        rows_of: dict[str, list[int]] = {}
-        for row, category in enumerate(categories):
-            rows_of.setdefault(category, []).append(row)
+        rows_of = _rows_by_category(categories)
         measured: dict[str, list[int]] = {}
         for category, rows in rows_of.items():
             order = torch.randperm(len(rows), generator=generator)[: self.map_objects]
