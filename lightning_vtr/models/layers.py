@@ -3,8 +3,9 @@
 oneDNN, PyTorch's CPU convolution backend, runs 3-D convolutions with few channels (1 to 20) through
 reference kernels when the activations are in PyTorch's default layout, and only in the
 ``channels_last_3d`` layout through its fast kernels. A convolution with one output channel and a
-``1^3`` kernel has no fast kernel in either layout. The helpers here keep the models' math and
-parameters (checkpoints load unchanged) and avoid both slow paths.
+``1^3`` kernel has no fast kernel in either layout. PyTorch's CPU batch normalisation is the other way
+round: with fewer than 8 channels it is fast only in the default layout. The helpers here keep the models'
+math and parameters (checkpoints load unchanged) and avoid these slow paths.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-__all__ = ["VolumeHead", "VolumeHeadTransposed", "channels_last_3d"]
+__all__ = ["BatchNorm3d", "VolumeHead", "VolumeHeadTransposed", "channels_last_3d"]
 
 
 def channels_last_3d(x: Tensor) -> Tensor:
@@ -23,6 +24,28 @@ def channels_last_3d(x: Tensor) -> Tensor:
         (2048, 1, 256, 32, 4)
     """
     return x.contiguous(memory_format=torch.channels_last_3d)
+
+
+_FEW_CHANNELS = 8  # below this, CPU batch normalisation is fast only in the default layout
+
+
+class BatchNorm3d(nn.BatchNorm3d):
+    """``nn.BatchNorm3d`` that normalises volumes with fewer than 8 channels on the CPU in the default layout.
+
+    Same parameters, buffers and math as ``nn.BatchNorm3d``; a ``channels_last_3d`` input with few channels
+    is copied to the default layout first (PyTorch's CPU kernel runs such inputs channel by channel with
+    scalar code, and is less accurate there), and the output stays in the default layout.
+
+    Example:
+        >>> bn = BatchNorm3d(4)
+        >>> bn(channels_last_3d(torch.randn(2, 4, 8, 8, 8))).is_contiguous()
+        True
+    """
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.device.type == "cpu" and x.shape[1] < _FEW_CHANNELS:
+            x = x.contiguous()
+        return super().forward(x)
 
 
 def _weighted_channel_sum(x: Tensor, weight: Tensor) -> Tensor:

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from lightning_vtr.models.layers import VolumeHeadTransposed, channels_last_3d
+from lightning_vtr.models.layers import BatchNorm3d, VolumeHeadTransposed, channels_last_3d
 from lightning_vtr.models.vit import Attention, Block, CrossAttention, Mlp
 from lightning_vtr.utils.validation import check_int
 
@@ -98,7 +98,7 @@ class DecoderStage(nn.Module):
         self.patch = patch
         self.upsample = nn.Sequential(
             nn.ConvTranspose3d(in_channels, channels, kernel_size=4, stride=2, padding=1, bias=False),
-            nn.BatchNorm3d(channels),
+            BatchNorm3d(channels),
             nn.ReLU(),
         )
         width = channels * patch**3

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
 from lightning_vtr.models.base import VoxelReconstructionModule
-from lightning_vtr.models.layers import VolumeHead, channels_last_3d
+from lightning_vtr.models.layers import BatchNorm3d, VolumeHead, channels_last_3d
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
@@ -163,13 +163,13 @@ class _Encoder(nn.Module):
 def _tconv3d(c_in: int, c_out: int) -> nn.Sequential:
     return nn.Sequential(
         nn.ConvTranspose3d(c_in, c_out, 4, stride=2, padding=1, bias=False),
-        nn.BatchNorm3d(c_out),
+        BatchNorm3d(c_out),
         nn.ReLU(inplace=True),
     )
 
 
 class _Decoder(nn.Module):
-    """Feature ``(N, C, 2, 2, 2)`` -> raw features ``(N, c + 1, 32, 32, 32)`` (last channel: volume)."""
+    """Feature ``(N, C, 2, 2, 2)`` -> features ``(N, c, 32, 32, 32)`` and a volume ``(N, 32, 32, 32)`` in [0, 1]."""
 
     def __init__(self, in_channels: int, channels: Sequence[int]) -> None:
         super().__init__()
@@ -177,9 +177,9 @@ class _Decoder(nn.Module):
         self.layers = nn.Sequential(*[_tconv3d(a, b) for a, b in itertools.pairwise(widths)])
         self.to_volume = VolumeHead(channels[-1])
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         features = self.layers(channels_last_3d(x))
-        return torch.cat([features, torch.sigmoid(self.to_volume(features))], dim=1)
+        return features, torch.sigmoid(self.to_volume(features)).squeeze(1)
 
     def reference_init_(self) -> None:
         """Pix2Vox++'s initialisation (:func:`reference_init_`), with the volume head's as released.
@@ -193,13 +193,14 @@ class _Decoder(nn.Module):
 
 
 def _conv3d_bn_lrelu(c_in: int, c_out: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, padding=1), nn.BatchNorm3d(c_out), nn.LeakyReLU(0.2))
+    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, padding=1), BatchNorm3d(c_out), nn.LeakyReLU(0.2))
 
 
 class _ContextAwareMerger(nn.Module):
     """Scores each view's volume per voxel and fuses the views with a softmax over views.
 
-    Works for any number of views: ``raw (B, V, C, R, R, R)`` -> ``(B, R, R, R)``.
+    Works for any number of views: features ``(B V, C - 1, R, R, R)`` and volumes ``(B, V, R, R, R)`` ->
+    ``(B, R, R, R)``. The scores see each view's features with its volume as the last channel.
     """
 
     def __init__(self, channels: int, stride: int = 1) -> None:
@@ -208,11 +209,12 @@ class _ContextAwareMerger(nn.Module):
         self.context = nn.ModuleList([_conv3d_bn_lrelu(channels, channels) for _ in range(4)])
         self.score = nn.Sequential(_conv3d_bn_lrelu(4 * channels, channels), _conv3d_bn_lrelu(channels, 1))
 
-    def forward(self, raw: Tensor) -> Tensor:
-        b, v = raw.shape[:2]
-        x = raw.flatten(0, 1)
-        if self.stride > 1:
-            x = F.avg_pool3d(x, self.stride)
+    def forward(self, features: Tensor, volumes: Tensor) -> Tensor:
+        b, v = volumes.shape[:2]
+        parts = [features, volumes.flatten(0, 1).unsqueeze(1)]
+        if self.stride > 1:  # pooled apart and then joined: the same values, and the join is smaller
+            parts = [F.avg_pool3d(part, self.stride) for part in parts]
+        x = torch.cat(parts, dim=1)
         stages = []
         for layer in self.context:
             x = layer(x)
@@ -220,9 +222,9 @@ class _ContextAwareMerger(nn.Module):
         scores = self.score(torch.cat(stages, dim=1))
         if self.stride > 1:
             scores = F.interpolate(scores, scale_factor=self.stride, mode="nearest")
-        scores = scores.view(b, v, *raw.shape[3:])
+        scores = scores.view(b, v, *volumes.shape[2:])
         weights = torch.softmax(scores, dim=1)
-        return (raw[:, :, -1] * weights).sum(dim=1).clamp(0, 1)
+        return (volumes * weights).sum(dim=1).clamp(0, 1)
 
 
 class _Refiner(nn.Module):
@@ -234,7 +236,7 @@ class _Refiner(nn.Module):
 
         def down(a: int, b: int) -> nn.Sequential:
             # k4 / pad 2 grows the side by one; the pool then halves it exactly (32 -> 33 -> 16).
-            return nn.Sequential(nn.Conv3d(a, b, 4, padding=2), nn.BatchNorm3d(b), nn.LeakyReLU(0.2), nn.MaxPool3d(2))
+            return nn.Sequential(nn.Conv3d(a, b, 4, padding=2), BatchNorm3d(b), nn.LeakyReLU(0.2), nn.MaxPool3d(2))
 
         self.down1, self.down2, self.down3 = down(1, c1), down(c1, c2), down(c2, c3)
         self._bottleneck = (c3, 4, 4, 4)
@@ -579,10 +581,10 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         """
         b, v = images.shape[:2]
         features = self.encoder(images.flatten(0, 1))  # (B V, C, h, w)
-        raw = self.decoder(features.reshape(b * v, -1, 2, 2, 2))  # (B V, c + 1, R, R, R)
-        raw = raw.view(b, v, *raw.shape[1:])
-        coarse = self.merger(raw)
-        return {"voxels": self.refiner(coarse), "coarse_voxels": coarse, "view_voxels": raw[:, :, -1]}
+        features, volumes = self.decoder(features.reshape(b * v, -1, 2, 2, 2))  # (B V, c, R, R, R), (B V, R, R, R)
+        volumes = volumes.view(b, v, *volumes.shape[1:])
+        coarse = self.merger(features, volumes)
+        return {"voxels": self.refiner(coarse), "coarse_voxels": coarse, "view_voxels": volumes}
 
     def loss(self, outputs: dict[str, Tensor], target: Tensor) -> Tensor:
         """BCE of the refined volume, or Pix2Vox++'s ``10 * (BCE(coarse) + BCE(refined))`` (``two_stage_loss``).

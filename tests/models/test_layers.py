@@ -13,7 +13,7 @@ from lightning_vtr.models import LRGT, Pix2VoxPlusPlus
 from lightning_vtr.models import layers as layers_module
 from lightning_vtr.models import lrgt_decoder as lrgt_decoder_module
 from lightning_vtr.models import pix2vox as pix2vox_module
-from lightning_vtr.models.layers import VolumeHead, VolumeHeadTransposed, channels_last_3d
+from lightning_vtr.models.layers import BatchNorm3d, VolumeHead, VolumeHeadTransposed, channels_last_3d
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 
@@ -41,6 +41,39 @@ def test_a_volume_head_equals_the_one_output_1x1x1_layer_it_replaces(head_class,
         torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize(("channels", "momentum"), [(4, 0.1), (5, None), (16, 0.3)])
+def test_batch_norm_equals_torch_batch_norm_in_training_and_evaluation(channels, momentum):
+    torch.manual_seed(0)
+    fast, plain = BatchNorm3d(channels, momentum=momentum), nn.BatchNorm3d(channels, momentum=momentum)
+    with torch.no_grad():
+        for layer in (fast, plain):
+            layer.weight.copy_(torch.linspace(0.5, 2.0, channels))
+            layer.bias.copy_(torch.linspace(-1.0, 1.0, channels))
+    assert fast.state_dict().keys() == plain.state_dict().keys()
+    generator = torch.Generator().manual_seed(0)
+    for step in range(2):  # the second step moves the running statistics again (a cumulative mean if momentum=None)
+        x = channels_last_3d(3 * torch.randn(4, channels, 6, 7, 8, generator=generator) + step)
+        got = _outputs_and_grads(fast, x)
+        expected = _outputs_and_grads(plain, x.contiguous())  # torch's exact kernel on the default layout
+        for g, e in zip(got, expected):
+            torch.testing.assert_close(g, e, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(fast.bias.grad, plain.bias.grad, atol=1e-5, rtol=1e-5)
+        for name in ("running_mean", "running_var", "num_batches_tracked"):
+            torch.testing.assert_close(getattr(fast, name), getattr(plain, name), atol=1e-5, rtol=1e-5)
+        fast.zero_grad(), plain.zero_grad()
+    assert plain.num_batches_tracked.item() == 2 and not torch.equal(plain.running_mean, torch.zeros(channels))
+    fast.eval(), plain.eval()
+    x = channels_last_3d(torch.randn(2, channels, 5, 5, 5, generator=generator))
+    with torch.no_grad():
+        torch.testing.assert_close(fast(x), plain(x.contiguous()), atol=1e-6, rtol=1e-6)
+
+
+def test_batch_norm_gives_few_channel_volumes_in_the_default_layout_and_keeps_others_as_they_are():
+    few, many = channels_last_3d(torch.randn(2, 4, 3, 3, 3)), channels_last_3d(torch.randn(2, 8, 3, 3, 3))
+    assert BatchNorm3d(4)(few).is_contiguous()
+    assert BatchNorm3d(8)(many).is_contiguous(memory_format=torch.channels_last_3d)
+
+
 def test_channels_last_3d_keeps_values_and_changes_only_the_layout():
     x = torch.randn(2, 3, 4, 5, 6)
     y = channels_last_3d(x)
@@ -53,18 +86,21 @@ def test_channels_last_3d_keeps_values_and_changes_only_the_layout():
 
 # ------------------------------------------------------------------------------ whole models, old layout
 def _reference(model: nn.Module, monkeypatch: pytest.MonkeyPatch) -> nn.Module:
-    """``model`` as the previous release computed it: plain 1^3 heads, default layout everywhere."""
+    """``model`` as the previous release computed it: plain 1^3 heads and BatchNorm, default layout everywhere."""
     reference = copy.deepcopy(model)
     for module in list(reference.modules()):
         for child_name, child in list(module.named_children()):
-            if isinstance(child, VolumeHead):
+            if isinstance(child, BatchNorm3d):
+                plain = nn.BatchNorm3d(child.num_features, child.eps, child.momentum)
+                plain.load_state_dict(child.state_dict())
+            elif isinstance(child, VolumeHead):
                 plain = nn.Conv3d(child.in_channels, 1, 1, bias=False)
             elif isinstance(child, VolumeHeadTransposed):
                 plain = nn.ConvTranspose3d(child.in_channels, 1, 1, bias=False)
             else:
                 continue
             plain = plain.to(child.weight.dtype)
-            plain.weight.data.copy_(child.weight.data)
+            plain.load_state_dict(child.state_dict())
             setattr(module, child_name, plain)
     with torch.no_grad():
         for p in reference.parameters():
@@ -124,3 +160,27 @@ def test_a_state_dict_saved_in_the_default_layout_loads_strictly_and_predicts_th
     # the restored 3-D weights keep the fast layout
     five_d = [p for p in restored.parameters() if p.ndim == 5 and p.shape[1] > 1 and p.shape[2] > 1]
     assert five_d and all(p.is_contiguous(memory_format=torch.channels_last_3d) for p in five_d)
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_the_merger_equals_scoring_the_joined_raw_volumes(stride):
+    # The merger pools features and volumes apart and joins them after; before, the decoder joined them into one
+    # raw tensor (features, then the volume as the last channel) that the merger pooled and sliced.
+    torch.manual_seed(0)
+    merger = pix2vox_module._ContextAwareMerger(5, stride).double().train()
+    before = copy.deepcopy(merger)
+    features, volumes = torch.randn(6, 4, 8, 8, 8).double(), torch.rand(2, 3, 8, 8, 8).double()
+    got = merger(features, volumes)
+    raw = torch.cat([features, volumes.flatten(0, 1).unsqueeze(1)], dim=1)
+    x = torch.nn.functional.avg_pool3d(raw, stride) if stride > 1 else raw
+    stages = []
+    for layer in before.context:
+        x = layer(x)
+        stages.append(x)
+    scores = before.score(torch.cat(stages, dim=1))
+    if stride > 1:
+        scores = torch.nn.functional.interpolate(scores, scale_factor=stride, mode="nearest")
+    weights = torch.softmax(scores.view(2, 3, 8, 8, 8), dim=1)
+    expected = (raw.view(2, 3, 5, 8, 8, 8)[:, :, -1] * weights).sum(dim=1).clamp(0, 1)
+    torch.testing.assert_close(got, expected, atol=1e-12, rtol=1e-12)
+    assert got.min() > 0 and got.max() < 1 and got.std() > 0.01
