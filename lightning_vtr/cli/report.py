@@ -37,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, default_experiment(), exclude=_EXPERIMENT_EXCLUDED)
     ablations = parser.add_mutually_exclusive_group()
     add_config_arguments(parser, ReportConfig(default_experiment()), groups={"ablations": ablations})
+    parser.set_defaults(jobs=None)  # auto_jobs, once the experiment is known
     ablations.add_argument(
         "--no-ablations", action="store_true", help="run no ablation (the default; kept for old command lines)"
     )
@@ -49,8 +50,11 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
     """The :class:`~lightning_vtr.experiments.report.ReportConfig` that parsed ``args`` describe."""
     from lightning_vtr.experiments.flags import config_from_arguments
     from lightning_vtr.experiments.report import ReportConfig, default_experiment
+    from lightning_vtr.experiments.report_config import auto_jobs
 
     experiment = config_from_arguments(args, default_experiment(), exclude=_EXPERIMENT_EXCLUDED)
+    if args.jobs is None:
+        args = argparse.Namespace(**{**vars(args), "jobs": auto_jobs(experiment)})
     report = config_from_arguments(args, ReportConfig(default_experiment()), experiment=experiment, command=command)
     if args.no_ablations:
         report.ablations = []

@@ -20,6 +20,7 @@ from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = [
     "ABLATIONS",
+    "AUTO_JOBS",
     "BASELINES",
     "MAIN_STRATEGIES",
     "METRICS",
@@ -28,6 +29,7 @@ __all__ = [
     "STRATEGIES",
     "STRATEGY_TITLES",
     "ReportConfig",
+    "auto_jobs",
     "default_experiment",
 ]
 
@@ -72,6 +74,41 @@ def default_experiment(**changes: Any) -> ExperimentConfig:
     return ExperimentConfig(**{**REPORT_EXPERIMENT, **changes})
 
 
+AUTO_JOBS = 4
+"""The most fits :func:`auto_jobs` runs at once."""
+
+
+def auto_jobs(experiment: ExperimentConfig) -> int:
+    """How many fits ``lightning-vtr report`` runs at once unless ``--jobs`` says: one per torch thread, at
+    most :data:`AUTO_JOBS`, when the fits run on the CPU with one device; else 1.
+
+    On a CPU, small models train faster as several one-thread fits side by side than as one fit with all
+    threads; each fit's numbers then are those of its thread count (``torch.get_num_threads() // jobs``).
+
+    Args:
+        experiment: the report's experiment (its ``accelerator`` and ``devices``).
+
+    Returns:
+        The number of fits at once, at least 1.
+
+    Example:
+        >>> import torch
+        >>> auto_jobs(default_experiment(accelerator="gpu"))
+        1
+        >>> auto_jobs(default_experiment(accelerator="cpu")) == min(AUTO_JOBS, torch.get_num_threads())
+        True
+    """
+    import torch
+
+    accelerator = experiment.accelerator
+    on_cpu = accelerator == "cpu" or (
+        accelerator == "auto" and not torch.cuda.is_available() and not torch.backends.mps.is_available()
+    )
+    if not on_cpu or str(experiment.devices) != "1":
+        return 1
+    return max(1, min(AUTO_JOBS, torch.get_num_threads()))
+
+
 @dataclass
 class ReportConfig:
     """What the report trains and where it writes: one experiment, repeated per seed and per strategy.
@@ -105,7 +142,8 @@ class ReportConfig:
             Their output goes to ``seed_<s>/logs/<run>.log``; the report prints a line per finished fit, then
             builds the tables from the runs' caches as usual. Results equal a one-process report's at the same
             thread count per fit (a fit's numbers depend on its thread count). Needs ``devices`` 1 and a
-            picklable ``synthesizer``. Default 1: everything in this process.
+            picklable ``synthesizer``. Default 1: everything in this process. ``lightning-vtr report``'s default
+            is :func:`auto_jobs`: two fits or more at a time on a CPU.
 
     Raises:
         ValueError: an unknown strategy or ablation, no or repeated seeds, a K that does not divide 180, a count
@@ -155,6 +193,7 @@ class ReportConfig:
             "fits run at once, each in its own process with (torch threads // N) threads; output per fit in "
             "OUT/seed_<s>/logs",
             minimum=1,
+            default_text=f"one per torch thread, at most {AUTO_JOBS}, for CPU fits on one device; else 1",
         ),
     )
 

@@ -219,7 +219,7 @@ class _ContextAwareMerger(nn.Module):
         for layer in self.context:
             x = layer(x)
             stages.append(x)
-        scores = self.score(torch.cat(stages, dim=1))
+        scores = self.score(channels_last_3d(torch.cat(stages, dim=1)))
         if self.stride > 1:
             scores = F.interpolate(scores, scale_factor=self.stride, mode="nearest")
         scores = scores.view(b, v, *volumes.shape[2:])

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 
 import pytest
+import torch
 
 from lightning_vtr.cli import main
 from lightning_vtr.cli.report import add_arguments
 from lightning_vtr.experiments.report import MAIN_STRATEGIES, ReportConfig, default_experiment
+from lightning_vtr.experiments.report_config import auto_jobs
 from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, VARIANTS
 
 
@@ -99,8 +101,12 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
     assert config.validation_repeats is None
     assert main(["report", "--validation-repeats", "12"]) == 0 and captured[-1].validation_repeats == 12
-    assert config.jobs == 1
-    assert main(["report", "--jobs", "2"]) == 0 and captured[-1].jobs == 2
+    # two fits at a time here (2 torch threads, no GPU), one on a GPU; --jobs overrides
+    assert torch.get_num_threads() == 2 and not torch.cuda.is_available()
+    assert config.jobs == auto_jobs(config.experiment) == 2
+    assert main(["report", "--accelerator", "gpu"]) == 0 and captured[-1].jobs == 1
+    assert main(["report", "--jobs", "1"]) == 0 and captured[-1].jobs == 1
+    assert main(["report", "--jobs", "3"]) == 0 and captured[-1].jobs == 3
 
 
 @pytest.mark.parametrize(
@@ -151,5 +157,6 @@ def test_every_flag_is_a_config_field_with_one_name_and_the_configs_default():
             assert action.option_strings == ["--" + dest.replace("_", "-")], dest
     for name in ("model", "pretrain_epochs", "finetune_epochs", "batch_size", "test_repeats", "fraction", "out"):
         assert actions[name].default == getattr(experiment, name)
-    assert actions["seeds"].default == list(report.seeds) and actions["jobs"].default == report.jobs
+    assert actions["seeds"].default == list(report.seeds)
+    assert actions["jobs"].default is None and report.jobs == 1  # the command's default is auto_jobs
     assert "seed" not in actions  # --seeds sets it
