@@ -11,7 +11,9 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 import pytest
 import torch
 
-torch.set_num_threads(2)
+# Two intra-op threads for the 2-core test machine; under pytest-xdist (``-n N``) each worker gets its share, so
+# the workers do not fight over the cores.
+torch.set_num_threads(max(1, 2 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
 
 TINY_DATASET = dict(
     categories=["chair", "table", "airplane"],

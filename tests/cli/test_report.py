@@ -87,6 +87,16 @@ def test_cli_builds_the_report_config(captured):
     assert config.command == "lightning-vtr " + " ".join(argv)
 
 
+@pytest.fixture
+def two_threads():
+    """Two torch threads, the test machine's count, also under pytest-xdist (whose workers run one each)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.mark.usefixtures("two_threads")
 def test_cli_defaults_are_the_report_defaults(captured):
     assert main(["report"]) == 0
     config = captured[-1]
