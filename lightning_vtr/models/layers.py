@@ -1,11 +1,11 @@
 """Layers shared by the reconstruction models, written for fast CPU training.
 
-oneDNN, PyTorch's CPU convolution backend, runs 3-D convolutions with few channels (1 to 20) through
-reference kernels when the activations are in PyTorch's default layout, and only in the
-``channels_last_3d`` layout through its fast kernels. A convolution with one output channel and a
-``1^3`` kernel has no fast kernel in either layout. PyTorch's CPU batch normalisation is the other way
-round: with fewer than 8 channels it is fast only in the default layout. The helpers here keep the models'
-math and parameters (checkpoints load unchanged) and avoid these slow paths.
+The models' 3-D activations travel in the ``channels_last_3d`` layout, where oneDNN, PyTorch's CPU convolution
+backend, runs the tiny presets' few-channel 3-D convolutions about as fast as in the default layout or faster.
+Two operations are slow there and get helpers that keep the models' math and parameters (checkpoints load
+unchanged): a convolution with one output channel and a ``1^3`` kernel, which has no fast kernel in either
+layout (:class:`VolumeHead`, a weighted sum over channels), and CPU batch normalisation of fewer than 8
+channels, which is fast only in the default layout (:class:`BatchNorm3d`).
 """
 
 from __future__ import annotations
