@@ -33,8 +33,8 @@ class BatchNorm3d(nn.BatchNorm3d):
     """``nn.BatchNorm3d`` that normalises volumes with fewer than 8 channels on the CPU in the default layout.
 
     Same parameters, buffers and math as ``nn.BatchNorm3d``; a ``channels_last_3d`` input with few channels
-    is copied to the default layout first (PyTorch's CPU kernel runs such inputs channel by channel with
-    scalar code, and is less accurate there), and the output stays in the default layout.
+    is copied to the default layout first (PyTorch's CPU kernel is several times slower on such inputs in
+    ``channels_last_3d``, and less accurate), and the output stays in the default layout.
 
     Example:
         >>> bn = BatchNorm3d(4)
