@@ -143,7 +143,7 @@ class ReportConfig:
             builds the tables from the runs' caches as usual. Results equal a one-process report's at the same
             thread count per fit (a fit's numbers depend on its thread count). Needs ``devices`` 1 and a
             picklable ``synthesizer``. Default 1: everything in this process. ``lightning-vtr report``'s default
-            is :func:`auto_jobs`: two fits or more at a time on a CPU.
+            is :func:`auto_jobs`: one fit per torch thread on a CPU, at most :data:`AUTO_JOBS`.
 
     Raises:
         ValueError: an unknown strategy or ablation, no or repeated seeds, a K that does not divide 180, a count

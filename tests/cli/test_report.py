@@ -10,7 +10,7 @@ import torch
 from lightning_vtr.cli import main
 from lightning_vtr.cli.report import add_arguments
 from lightning_vtr.experiments.report import MAIN_STRATEGIES, ReportConfig, default_experiment
-from lightning_vtr.experiments.report_config import auto_jobs
+from lightning_vtr.experiments.report_config import AUTO_JOBS, auto_jobs
 from lightning_vtr.experiments.training import FINETUNE_LR_SCHEDULES, MODELS, VARIANTS
 
 
@@ -87,17 +87,11 @@ def test_cli_builds_the_report_config(captured):
     assert config.command == "lightning-vtr " + " ".join(argv)
 
 
-@pytest.fixture
-def two_threads():
-    """Two torch threads, the test machine's count, also under pytest-xdist (whose workers run one each)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(previous)
-
-
-@pytest.mark.usefixtures("two_threads")
-def test_cli_defaults_are_the_report_defaults(captured):
+def test_cli_defaults_are_the_report_defaults(captured, monkeypatch):
+    # a CPU-only machine with 3 torch threads, whatever this one has
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 3)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     assert main(["report"]) == 0
     config = captured[-1]
     assert config.experiment == ReportConfig().experiment == default_experiment()
@@ -111,12 +105,15 @@ def test_cli_defaults_are_the_report_defaults(captured):
     assert main(["report", "--recipe", "reference"]) == 0 and captured[-1].experiment.recipe == "reference"
     assert config.validation_repeats is None
     assert main(["report", "--validation-repeats", "12"]) == 0 and captured[-1].validation_repeats == 12
-    # two fits at a time here (2 torch threads, no GPU), one on a GPU; --jobs overrides
-    assert torch.get_num_threads() == 2 and not torch.cuda.is_available()
-    assert config.jobs == auto_jobs(config.experiment) == 2
+    # one fit per torch thread on a CPU, at most AUTO_JOBS; one on a GPU or with two devices; --jobs overrides
+    assert config.jobs == auto_jobs(config.experiment) == 3
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 16)
+    assert main(["report"]) == 0 and captured[-1].jobs == AUTO_JOBS == 4
     assert main(["report", "--accelerator", "gpu"]) == 0 and captured[-1].jobs == 1
-    assert main(["report", "--jobs", "1"]) == 0 and captured[-1].jobs == 1
-    assert main(["report", "--jobs", "3"]) == 0 and captured[-1].jobs == 3
+    assert main(["report", "--devices", "2"]) == 0 and captured[-1].jobs == 1
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert main(["report"]) == 0 and captured[-1].jobs == 1  # accelerator "auto" finds the GPU
+    assert main(["report", "--jobs", "2"]) == 0 and captured[-1].jobs == 2
 
 
 @pytest.mark.parametrize(
