@@ -49,7 +49,14 @@ class BatchNorm3d(nn.BatchNorm3d):
 
 
 def _weighted_channel_sum(x: Tensor, weight: Tensor) -> Tensor:
-    """``(N, C, D, H, W)`` -> ``(N, 1, D, H, W)``: the sum over channels weighted by ``weight (C,)``."""
+    """``(N, C, D, H, W)`` -> ``(N, 1, D, H, W)``: the sum over channels weighted by ``weight (C,)``.
+
+    A broadcast product and a sum in the default layout, whose backward is about twice as fast as that of a
+    contraction (``einsum`` turns the input's gradient into a batched product with an inner size of one); a
+    contraction in ``channels_last_3d``, where the product's sum over channels is the slow one.
+    """
+    if x.is_contiguous():
+        return (x * weight.to(x.dtype).view(1, -1, 1, 1, 1)).sum(dim=1, keepdim=True)  # x's dtype, as autocast
     return torch.einsum("ncdhw,c->ndhw", x, weight).unsqueeze(1)
 
 

@@ -9,6 +9,7 @@ reads the checkpoints the Pix2Vox++ authors released.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import os
 import pickle
@@ -28,7 +29,7 @@ from lightning_vtr.models.layers import BatchNorm3d, VolumeHead, channels_last_3
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
-from lightning_vtr.utils.validation import check_choice, check_type
+from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 if TYPE_CHECKING:
     from lightning.pytorch.utilities.parsing import AttributeDict
@@ -53,7 +54,8 @@ class Pix2VoxSpec:
         refiner_hidden: width of the refiner's bottleneck fully-connected layer.
         merger_stride: the merger scores views on a grid this many times coarser than the volume
             (average-pooled features, nearest-upsampled scores). 1 in the paper; the tiny preset
-            uses 2 because scoring 32^3 voxels per view dominates a CPU training step.
+            uses 4 (an 8^3 grid; 2 until 0.3) because scoring 32^3 voxels per view dominates a CPU
+            training step.
         init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s:
             convolutions Kaiming-normal, BatchNorm weight 1 / bias 0, Linear N(0, 0.01), biases 0) or
             ``"torch"`` (PyTorch's defaults).
@@ -117,17 +119,28 @@ PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
         decoder_channels=(32, 16, 8, 4),
         refiner_channels=(4, 8, 16),
         refiner_hidden=256,
-        merger_stride=2,
+        merger_stride=4,
         init="torch",
         two_stage_loss=False,
     ),
 }
 """The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
-``tiny``: 64 px, about 0.2 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
-initialisation and ``BCE(refined)``."""
+``tiny``: 64 px, about 0.76 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
+initialisation and ``BCE(refined)``, and its merger scores the views on an 8^3 grid (a 16^3 grid until 0.3;
+:class:`Pix2VoxPlusPlus` reads older checkpoints with the stride they were trained with)."""
+
+_LEGACY_MERGER_STRIDES = {"paper": 1, "tiny": 2}
+"""Each preset's merger stride in checkpoints written before ``merger_stride`` was a hyperparameter (<= 0.3)."""
 
 _RESOLUTION = 32  # four doublings from the 2^3 seed volume
 _INITS = ("reference", "torch")
+
+
+def _check_merger_stride(stride: object) -> int:
+    value = check_int("merger_stride", stride, minimum=1)
+    if _RESOLUTION % value:
+        raise ValueError(f"`merger_stride` must divide the volume side {_RESOLUTION}, got {value}")
+    return value
 
 
 def _conv_bn_relu(c_in: int, c_out: int, pool: bool) -> nn.Sequential:
@@ -418,6 +431,10 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         validation_fscore: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
         categories: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
         log_sheets: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
+        merger_stride: the merger's scoring grid is this many times coarser than the volume; ``None``: the
+            preset's (``paper``: 1, ``tiny``: 4). A divisor of 32. It has no parameters, so a model saved with
+            one stride loads into another; a checkpoint written before 0.4, which does not record it, is read
+            with the stride its preset had then (``tiny``: 2), so it predicts as it did.
 
     Raises:
         ValueError: on an unknown preset or init, weights for a preset without ResNet-50, or bad sizes.
@@ -451,11 +468,15 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         validation_fscore: bool = True,
         log_sheets: int = 0,
         categories: tuple[str, ...] | None = None,
+        merger_stride: int | None = None,
     ) -> None:
         # 1. resolve the preset's defaults first: save_hyperparameters() records the values in effect
         check_choice("preset", preset, PIX2VOX_PRESETS)
         spec = PIX2VOX_PRESETS[preset]
         init = spec.init if init is None else check_choice("init", init, _INITS)
+        merger_stride = spec.merger_stride if merger_stride is None else _check_merger_stride(merger_stride)
+        if merger_stride != spec.merger_stride:
+            spec = dataclasses.replace(spec, merger_stride=merger_stride)
         two_stage_loss = spec.two_stage_loss if two_stage_loss is None else bool(two_stage_loss)
         if backbone_weights is not None and spec.backbone != "resnet50":
             raise ValueError(
@@ -620,10 +641,20 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         checkpoint["pix2vox_preset"] = self.preset
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        found = checkpoint.get("pix2vox_preset", checkpoint.get("hyper_parameters", {}).get("preset"))
+        hparams = checkpoint.get("hyper_parameters", {})
+        found = checkpoint.get("pix2vox_preset", hparams.get("preset"))
         if found is not None and found != self.preset:
             raise ValueError(
                 f"checkpoint was saved from a Pix2VoxPlusPlus with preset {found!r}; this model has preset "
                 f"{self.preset!r} (expected {self.preset!r}). Build the model with preset={found!r} or use "
                 "Pix2VoxPlusPlus.load_from_checkpoint(path) without overriding `preset`."
             )
+        if "merger_stride" not in hparams:
+            # Written before 0.4: the merger had its preset's stride of the time (no parameters depend on it).
+            self.set_merger_stride(_LEGACY_MERGER_STRIDES[self.preset])
+
+    def set_merger_stride(self, stride: int) -> None:
+        """Score the views on a grid ``stride`` times coarser than the volume (recorded in ``hparams``)."""
+        self.merger.stride = _check_merger_stride(stride)
+        self.spec = dataclasses.replace(self.spec, merger_stride=stride)
+        self.hparams["merger_stride"] = stride

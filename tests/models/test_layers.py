@@ -36,9 +36,12 @@ def test_a_volume_head_equals_the_one_output_1x1x1_layer_it_replaces(head_class,
     plain = plain_class(channels, 1, 1, bias=False)
     plain.weight.data.copy_(head.weight.data)
     x = torch.randn(3, channels, 5, 6, 7)
-    for got, expected in zip(_outputs_and_grads(head, x), _outputs_and_grads(plain, x)):
-        assert got.shape == expected.shape
-        torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+    expected_values = _outputs_and_grads(plain, x)
+    for layout in (x, channels_last_3d(x)):  # a broadcast product and sum, or a contraction
+        head.zero_grad()
+        for got, expected in zip(_outputs_and_grads(head, layout), expected_values):
+            assert got.shape == expected.shape
+            torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.parametrize(("channels", "momentum"), [(4, 0.1), (5, None), (16, 0.3)])

@@ -14,6 +14,7 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from lightning_vtr.metrics import voxel_iou
+from lightning_vtr.models.layers import channels_last_3d
 from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, _Decoder
 from lightning_vtr.models.resnet import ResNet50Stem
 from lightning_vtr.protocol import ReconstructionModel
@@ -89,9 +90,58 @@ def test_model_keeps_its_preset_spec(tiny):
     assert (tiny.spec.image_size, tiny.spec.backbone, tiny.spec.merger_stride, tiny.spec.feature_size) == (
         64,
         "small",
-        2,
+        4,
         4,
     )
+    assert tiny.hparams.merger_stride == tiny.merger.stride == 4
+
+
+def test_merger_stride_is_a_hyperparameter_and_old_checkpoints_keep_theirs(tmp_path):
+    torch.manual_seed(0)
+    old = Pix2VoxPlusPlus(preset="tiny", merger_stride=2).eval()  # what "tiny" was until 0.3
+    assert (old.spec.merger_stride, old.merger.stride, old.hparams.merger_stride) == (2, 2, 2)
+    x = torch.randn(2, 3, 3, 64, 64)
+    with torch.no_grad():
+        expected = old.predict_voxels(x)
+    # A checkpoint written before 0.4 has no `merger_stride` hyperparameter: it is read with the stride of its
+    # time, 2, not the preset's present 4, and predicts what it did.
+    hparams = {k: v for k, v in old.hparams.items() if k != "merger_stride"}
+    path = tmp_path / "tiny_0.3.ckpt"
+    torch.save(
+        {"state_dict": old.state_dict(), "hyper_parameters": hparams, "pytorch-lightning_version": "2.5.0"}, path
+    )
+    restored = Pix2VoxPlusPlus.load_from_checkpoint(path).eval()
+    assert (restored.merger.stride, restored.hparams.merger_stride, restored.spec.merger_stride) == (2, 2, 2)
+    with torch.no_grad():
+        torch.testing.assert_close(restored.predict_voxels(x), expected, rtol=0, atol=0)
+    # The stride matters: the same weights scored on the present tiny grid fuse the views differently.
+    features, volumes = torch.randn(2 * 3, 4, R, R, R), torch.rand(2, 3, R, R, R)
+    with torch.no_grad():
+        on_16 = restored.merger(channels_last_3d(features), volumes)
+        restored.set_merger_stride(4)
+        on_8 = restored.merger(channels_last_3d(features), volumes)
+    assert restored.hparams.merger_stride == 4 and (on_8 - on_16).abs().max() > 1e-3
+    # A checkpoint that records its stride keeps it too.
+    path = tmp_path / "tiny_stride_8.ckpt"
+    wide = Pix2VoxPlusPlus(preset="tiny", merger_stride=8)
+    torch.save(
+        {"state_dict": wide.state_dict(), "hyper_parameters": dict(wide.hparams), "pytorch-lightning_version": "2.5.0"},
+        path,
+    )
+    assert Pix2VoxPlusPlus.load_from_checkpoint(path).merger.stride == 8
+
+
+@pytest.mark.parametrize(
+    ("stride", "error", "match"),
+    [
+        (3, ValueError, "divide the volume side 32, got 3"),
+        (0, ValueError, "merger_stride"),
+        (2.0, TypeError, "must be an int"),
+    ],
+)
+def test_bad_merger_stride(stride, error, match):
+    with pytest.raises(error, match=match):
+        Pix2VoxPlusPlus(preset="tiny", merger_stride=stride)
 
 
 def test_checkpoint_from_another_preset_errors(tiny, tmp_path):
