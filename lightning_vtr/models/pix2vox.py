@@ -651,9 +651,9 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
             )
         if "merger_stride" not in hparams:
             # Written before 0.4: the merger had its preset's stride of the time (no parameters depend on it).
-            self.set_merger_stride(_LEGACY_MERGER_STRIDES[self.preset])
+            self._set_merger_stride(_LEGACY_MERGER_STRIDES[self.preset])
 
-    def set_merger_stride(self, stride: int) -> None:
+    def _set_merger_stride(self, stride: int) -> None:
         """Score the views on a grid ``stride`` times coarser than the volume (recorded in ``hparams``)."""
         self.merger.stride = _check_merger_stride(stride)
         self.spec = dataclasses.replace(self.spec, merger_stride=stride)

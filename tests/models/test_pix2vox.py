@@ -118,7 +118,7 @@ def test_merger_stride_is_a_hyperparameter_and_old_checkpoints_keep_theirs(tmp_p
     features, volumes = torch.randn(2 * 3, 4, R, R, R), torch.rand(2, 3, R, R, R)
     with torch.no_grad():
         on_16 = restored.merger(channels_last_3d(features), volumes)
-        restored.set_merger_stride(4)
+        restored._set_merger_stride(4)
         on_8 = restored.merger(channels_last_3d(features), volumes)
     assert restored.hparams.merger_stride == 4 and (on_8 - on_16).abs().max() > 1e-3
     # A checkpoint that records its stride keeps it too.
