@@ -288,8 +288,8 @@ def test_preset_specs_hold_the_published_and_tiny_architectures():
     assert (tiny.image_size, tiny.patch_size, tiny.embed_dim, tiny.depth, tiny.num_heads) == (64, 8, 64, 4, 4)
     assert tiny.grouping_blocks == (1, 3) and tiny.group_stride == 4 and tiny.grid_size == 8
     assert (tiny.num_merged_tokens, tiny.merger_k, tiny.merger_depth) == (64, 5, 2)
-    assert (tiny.decoder_depth, tiny.decoder_stage_depth, tiny.decoder_heads) == (1, 2, 1)
-    assert tiny.query_grid == 4 and tiny.upsample_channels == (16, 4, 1) and tiny.voxel_resolution == 32
+    assert (tiny.decoder_depth, tiny.decoder_stage_depth, tiny.decoder_heads) == (1, 0, 1)
+    assert tiny.query_grid == 4 and tiny.upsample_channels == (16, 4, 6) and tiny.voxel_resolution == 32
 
 
 def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
@@ -297,8 +297,8 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
     with pytest.raises(dataclasses.FrozenInstanceError):
         tiny.depth = 8
     fields = dataclasses.asdict(tiny)
-    from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [16, 4, 1]})
-    assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (16, 4, 1)
+    from_lists = LRGTSpec(**{**fields, "grouping_blocks": [1, 3], "upsample_channels": [16, 4, 6]})
+    assert from_lists.grouping_blocks == (1, 3) and from_lists.upsample_channels == (16, 4, 6)
     assert from_lists == tiny and hash(from_lists) == hash(tiny)
     assert LRGTNetwork(LRGTSpec(**fields)).spec == tiny
 
@@ -320,15 +320,15 @@ def test_spec_is_frozen_normalises_sequences_and_compares_by_value():
         ({"decoder_stage_depth": -1}, ValueError, r"`decoder_stage_depth` must be an int >= 0, got -1"),
         ({"num_heads": 3}, ValueError, r"`num_heads` must divide `embed_dim` 64, got 3"),
         (
-            {"decoder_stage_depth": 0},
+            {"upsample_channels": (16, 4, 1)},
             ValueError,
             r"`upsample_channels` must end in 2 or more channels when `decoder_stage_depth` is 0: .*got \[16, 4, 1\]",
         ),
         (
             {"decoder_heads": 32},
             ValueError,
-            r"`decoder_heads` must divide the decoder stage widths \[16, 32, 64\] \(`upsample_channels` "
-            r"\[16, 4, 1\] x patch\^3\), got 32",
+            r"`decoder_heads` must divide the decoder stage widths \[16, 32, 384\] \(`upsample_channels` "
+            r"\[16, 4, 6\] x patch\^3\), got 32",
         ),
     ],
 )
@@ -452,8 +452,8 @@ def test_checkpoint_round_trip_records_the_resolved_architecture(tmp_path):
 
 
 #: The ``hyper_parameters`` a Trainer stored for ``LRGT(preset="tiny", image_size=32, patch_size=4, embed_dim=32,
-#: num_heads=2, upsample_channels=[16, 8])`` when ``LRGTNetwork`` took the 15 spec fields as arguments: every
-#: architecture field resolved, the sequences as lists.
+#: num_heads=2, upsample_channels=[16, 8])`` when ``LRGTNetwork`` took the 15 spec fields as arguments and the
+#: tiny decoder had two attention blocks per stage (0.3): every architecture field resolved, the sequences as lists.
 SAVED_HPARAMS = {
     "preset": "tiny",
     "num_views": 3,
@@ -492,7 +492,7 @@ def test_checkpoints_saved_with_the_spec_fields_as_hparams_load_and_predict_the_
         k: SAVED_HPARAMS[k] for k in ("image_size", "patch_size", "embed_dim", "num_heads", "upsample_channels")
     }
     torch.manual_seed(0)
-    model = LRGT(preset="tiny", **overrides).eval()
+    model = LRGT(preset="tiny", decoder_stage_depth=2, **overrides).eval()  # 0.3's tiny decoder
     # The state dict keeps its layout and the hyperparameters their form ...
     state = model.state_dict()
     layout = "\n".join(f"{k}:{tuple(v.shape)}" for k, v in state.items())
@@ -511,8 +511,15 @@ def test_checkpoints_saved_with_the_spec_fields_as_hparams_load_and_predict_the_
     )
     restored = LRGT.load_from_checkpoint(path).eval()
     assert restored.spec == dataclasses.replace(
-        LRGT_PRESETS["tiny"], image_size=32, patch_size=4, embed_dim=32, num_heads=2, upsample_channels=(16, 8)
+        LRGT_PRESETS["tiny"],
+        image_size=32,
+        patch_size=4,
+        embed_dim=32,
+        num_heads=2,
+        upsample_channels=(16, 8),
+        decoder_stage_depth=2,
     )
+    assert LRGT_PRESETS["tiny"].decoder_stage_depth == 0  # the checkpoint, not the preset, gave the two blocks
     images = torch.randn(2, 3, 3, 32, 32)
     with torch.no_grad():
         assert torch.equal(restored.predict_voxels(images), model.predict_voxels(images))
