@@ -192,6 +192,13 @@ class ProgressiveUpsamplingDecoder(nn.Module):
             elif isinstance(m, (nn.BatchNorm3d, nn.LayerNorm)):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
+        if self.stages and not self.stages[-1].blocks:
+            # The head then reads the last stage's ReLU output, >= 0: with weights of one sign it could not move a
+            # probability to the other side of 0.5 from where the features are zero, and a small learning rate
+            # takes thousands of steps to flip a sign. Alternate the signs of its Kaiming draws.
+            with torch.no_grad():
+                weight = self.head.weight.view(-1)
+                weight.abs_()[1::2].neg_()
 
     def forward(self, tokens: Tensor) -> Tensor:
         """Merged tokens ``(B, M, D)`` to probabilities ``(B, R, R, R)``."""
