@@ -212,11 +212,10 @@ parameters). ``tiny``: the same encoder, merger and query decoder at small width
 on a CPU; 8x8 tokens with stride 4 keep groups of 4 tokens per view, and the decoder has one attention head. Its
 decoder upsamples the queries with transposed convolutions alone (``decoder_stage_depth=0``; 2 until 0.3, when
 the stages had 16, 4 and 1 channels): self-attention over the 512 tokens of each stage took about 60 % of a CPU
-training step. The last stage has 6 channels: without blocks after it, its ReLU output reaches the sigmoid head
-directly, and a head whose weights all start positive predicts no empty voxel until they change sign, which
-LRGT's learning rate takes thousands of steps to do (with 4 channels, seed 0 drew such a head and learned
-nothing in 16 epochs). Checkpoints record the whole architecture, so a model saved with 0.3's ``tiny`` loads as
-it was trained."""
+training step. Without blocks after it, the last stage's ReLU output reaches the sigmoid head directly, so the
+head's initial weights alternate in sign (see :class:`~lightning_vtr.models.lrgt_decoder.ProgressiveUpsamplingDecoder`),
+and the stage has 6 channels (4 learned more slowly on the embedded dataset). Checkpoints record the whole
+architecture, so a model saved with 0.3's ``tiny`` loads as it was trained."""
 
 
 def _architecture_hparams(spec: LRGTSpec) -> dict[str, object]:

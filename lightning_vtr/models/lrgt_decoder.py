@@ -131,7 +131,11 @@ class ProgressiveUpsamplingDecoder(nn.Module):
     two blocks per stage) has 29,798,625 parameters, as the released code. Initialised as the
     released code does: queries ``N(0, 1)``, linear weights ``N(0, 0.01)`` with zero biases,
     convolutions Kaiming-normal, BatchNorm ``1, 0``. Attention dropout is off (the released
-    code configures 0.4 but never applies it).
+    code configures 0.4 but never applies it). Without stage blocks (``stage_depth=0``, not in the paper) the head
+    reads the last stage's ReLU output, which is never negative: a head whose weights all have one sign keeps
+    every probability on one side of 0.5 where the features are zero, and a small learning rate takes thousands
+    of steps to flip a sign (tiny LRGT with 4 channels there drew such a head for seed 0 and learned nothing in
+    16 epochs), so the head's Kaiming draws get alternating signs.
 
     Args:
         dim: ``D``, the width of the merged tokens and queries.

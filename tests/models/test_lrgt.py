@@ -337,11 +337,24 @@ def test_spec_rejects_bad_fields(change, error, match):
         dataclasses.replace(LRGT_PRESETS["tiny"], **change)
 
 
-def test_a_decoder_without_stage_blocks_needs_a_last_stage_of_two_channels_or_more():
-    spec = dataclasses.replace(LRGT_PRESETS["tiny"], decoder_stage_depth=0, upsample_channels=(16, 4, 2))
-    network = LRGTNetwork(spec)
-    assert [len(stage.blocks) for stage in network.decoder.stages] == [0, 0, 0]
-    assert network(torch.zeros(1, 2, 3, 64, 64)).shape == (1, 32, 32, 32)
+def test_a_decoder_without_stage_blocks_starts_with_a_head_of_both_signs():
+    for seed in range(4):
+        torch.manual_seed(seed)
+        network = LRGTNetwork(LRGT_PRESETS["tiny"])
+        assert [len(stage.blocks) for stage in network.decoder.stages] == [0, 0, 0]
+        signs = torch.sign(network.decoder.head.weight.flatten()).tolist()
+        assert signs == [1.0, -1.0, 1.0, -1.0, 1.0, -1.0]
+        # So some voxels start below 0.5: the ReLU features are >= 0, and a head of one sign keeps every
+        # probability on one side of 0.5.
+        probs = network(torch.randn(2, 3, 3, 64, 64))
+        assert (probs < 0.5).any() and (probs > 0.5).any()
+    # With stage blocks (the paper's decoder) the head keeps its Kaiming draw as released: signs as drawn.
+    with_blocks = dataclasses.replace(LRGT_PRESETS["tiny"], decoder_stage_depth=2)
+    patterns = set()
+    for seed in range(4):
+        torch.manual_seed(seed)
+        patterns.add(tuple(torch.sign(LRGTNetwork(with_blocks).decoder.head.weight.flatten()).tolist()))
+    assert len(patterns) > 1
 
 
 def test_model_and_network_are_built_from_the_spec():
