@@ -394,8 +394,9 @@ class LRGT(VoxelReconstructionModule):
     """LRGT as a LightningModule satisfying :class:`~lightning_vtr.protocol.ReconstructionModel`.
 
     ``preset`` picks an architecture from :data:`LRGT_PRESETS` (``"paper"``: the published model,
-    DeiT-B encoder, 224 px input, 129.8 M parameters; ``"tiny"``: the same architecture at small
-    widths, 64 px input, 0.7 M parameters, trains on a CPU); any architecture argument left at
+    DeiT-B encoder, 224 px input, 129.8 M parameters; ``"tiny"``: its encoder, merger and query decoder at
+    small widths with a decoder that upsamples without attention, 64 px input, 0.46 M parameters, trains on a
+    CPU); any architecture argument left at
     ``None`` takes the preset's value. The resolved
     architecture is :attr:`spec`, an :class:`LRGTSpec`. Training
     minimises :func:`dice_loss` with AdamW and a MultiStepLR schedule (milestones in epochs),
