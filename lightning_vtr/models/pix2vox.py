@@ -433,8 +433,9 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         log_sheets: as in :class:`~lightning_vtr.models.base.VoxelReconstructionModule`.
         merger_stride: the merger's scoring grid is this many times coarser than the volume; ``None``: the
             preset's (``paper``: 1, ``tiny``: 4). A divisor of 32. It has no parameters, so a model saved with
-            one stride loads into another; a checkpoint written before 0.4, which does not record it, is read
-            with the stride its preset had then (``tiny``: 2), so it predicts as it did.
+            one stride loads into another. A checkpoint brings the stride it was trained with (resuming a fit
+            included) unless :meth:`load_from_checkpoint` is given ``merger_stride=``; one written before 0.4,
+            which does not record it, brings its preset's of then (``tiny``: 2), so it predicts as it did.
 
     Raises:
         ValueError: on an unknown preset or init, weights for a preset without ResNet-50, or bad sizes.
@@ -649,9 +650,11 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
                 f"{self.preset!r} (expected {self.preset!r}). Build the model with preset={found!r} or use "
                 "Pix2VoxPlusPlus.load_from_checkpoint(path) without overriding `preset`."
             )
-        if "merger_stride" not in hparams:
-            # Written before 0.4: the merger had its preset's stride of the time (no parameters depend on it).
-            self._set_merger_stride(_LEGACY_MERGER_STRIDES[self.preset])
+        # The stride the weights were trained with (no parameters depend on it): recorded since 0.4, before that
+        # the preset's of the time. load_from_checkpoint(path, merger_stride=...) records its override there first.
+        stride = hparams.get("merger_stride", _LEGACY_MERGER_STRIDES[self.preset])
+        if stride != self.merger.stride:
+            self._set_merger_stride(stride)
 
     def _set_merger_stride(self, stride: int) -> None:
         """Score the views on a grid ``stride`` times coarser than the volume (recorded in ``hparams``)."""

@@ -129,6 +129,13 @@ def test_merger_stride_is_a_hyperparameter_and_old_checkpoints_keep_theirs(tmp_p
         path,
     )
     assert Pix2VoxPlusPlus.load_from_checkpoint(path).merger.stride == 8
+    # An override wins over the checkpoint's stride, for old and new checkpoints alike ...
+    assert Pix2VoxPlusPlus.load_from_checkpoint(path, merger_stride=4).merger.stride == 4
+    assert Pix2VoxPlusPlus.load_from_checkpoint(tmp_path / "tiny_0.3.ckpt", merger_stride=4).merger.stride == 4
+    # ... and resuming a fit into a model built with the default brings the checkpoint's (the hook a Trainer calls).
+    resumed = Pix2VoxPlusPlus(preset="tiny")
+    resumed.on_load_checkpoint(torch.load(path, weights_only=False))
+    assert (resumed.merger.stride, resumed.hparams.merger_stride) == (8, 8)
 
 
 @pytest.mark.parametrize(
