@@ -658,6 +658,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
 
     def _set_merger_stride(self, stride: int) -> None:
         """Score the views on a grid ``stride`` times coarser than the volume (recorded in ``hparams``)."""
-        self.merger.stride = _check_merger_stride(stride)
+        stride = _check_merger_stride(stride)
+        self.merger.stride = stride
         self.spec = dataclasses.replace(self.spec, merger_stride=stride)
         self.hparams["merger_stride"] = stride
