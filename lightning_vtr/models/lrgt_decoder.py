@@ -99,7 +99,7 @@ class DecoderStage(nn.Module):
         self.upsample = nn.Sequential(
             nn.ConvTranspose3d(in_channels, channels, kernel_size=4, stride=2, padding=1, bias=False),
             BatchNorm3d(channels),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),  # on the normalised volume, which nothing else keeps: one volume less to allocate
         )
         width = channels * patch**3
         self.blocks = nn.ModuleList(Block(width, num_heads, qkv_bias=False, norm_eps=1e-5) for _ in range(depth))

@@ -121,9 +121,13 @@ class CrossAttention(nn.Module):
         h, d = self.num_heads, self.head_dim
         q = self.q(x).reshape(n, nq, h, d).transpose(1, 2)
         k, v = self.kv(memory).reshape(n, memory.shape[1], 2, h, d).permute(2, 0, 3, 1, 4).unbind(0)
-        if logit_bias is not None:
-            logit_bias = logit_bias.to(q.dtype).expand(n, h, nq, memory.shape[1])
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=logit_bias)
+        if logit_bias is None:
+            out = F.scaled_dot_product_attention(q, k, v)
+        else:
+            # Written out: with a bias that needs a gradient, scaled_dot_product_attention takes its reference
+            # path, which computes the same but is slower on the CPU (materialises the bias, checks every row).
+            logits = torch.matmul(q, k.transpose(-2, -1)) * (1.0 / math.sqrt(d)) + logit_bias.to(q.dtype)
+            out = torch.matmul(logits.softmax(dim=-1), v)
         return self.proj(Attention.merge_heads(out))
 
 

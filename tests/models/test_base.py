@@ -96,6 +96,18 @@ def test_bad_images_raise(images, match):
         _PassThrough().predict_voxels(images)
 
 
+def test_one_bad_pixel_is_found_and_finite_pixels_whose_sum_overflows_pass():
+    model = _PassThrough()
+    one_bad = torch.zeros(2, 1, 3, 8, 8)
+    one_bad[1, 0, 2, 7, 7] = float("-inf")
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        model.predict_voxels(one_bad)
+    # Every pixel finite, their float32 sum infinite: the sum alone would refuse them.
+    huge = torch.full((1, 1, 3, 8, 8), 3e38)
+    assert torch.isinf(huge.sum())
+    assert torch.equal(model.predict_voxels(huge), huge[:, 0, 0, :4, :4, None].expand(-1, 4, 4, 4))
+
+
 def test_bad_targets_and_view_sets_raise():
     model = _PassThrough()
     batch = _batch([2], ["aligned"], ["a"])

@@ -529,3 +529,28 @@ def test_checkpoints_saved_with_the_spec_fields_as_hparams_load_and_predict_the_
     images = torch.randn(2, 3, 3, 32, 32)
     with torch.no_grad():
         assert torch.equal(restored.predict_voxels(images), model.predict_voxels(images))
+
+
+def test_the_optimizer_is_torchs_fused_adamw_and_steps_like_the_looped_one():
+    # The decoder's upsampling weights are channels_last_3d: the fused step must update them element for element
+    # as the per-parameter loop does (autograd hands each parameter a gradient in its own layout).
+    torch.manual_seed(0)
+    fused = LRGT(preset="tiny")
+    looped = LRGT(preset="tiny")
+    looped.load_state_dict(fused.state_dict())
+    start = {name: p.detach().clone() for name, p in fused.named_parameters()}
+    assert fused.network.decoder.stages[-1].upsample[0].weight.is_contiguous(memory_format=torch.channels_last_3d)
+    fused_opt = fused.configure_optimizers()["optimizer"]
+    assert isinstance(fused_opt, torch.optim.AdamW) and fused_opt.defaults["fused"] is True
+    looped_opt = torch.optim.AdamW(looped.parameters(), lr=fused.hparams.lr, weight_decay=fused.hparams.weight_decay)
+    images, voxels = torch.randn(2, 3, 3, 64, 64), (torch.rand(2, 32, 32, 32) > 0.7).float()
+    for model, opt in ((fused, fused_opt), (looped, looped_opt)):
+        for _ in range(2):
+            opt.zero_grad()
+            model.loss(model(images), voxels).backward()
+            opt.step()
+    moved = 0
+    for (name, a), b in zip(fused.named_parameters(), looped.parameters(), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5, msg=name)
+        moved += int(not torch.equal(a, start[name]))
+    assert moved == sum(p.requires_grad for p in fused.parameters())  # every trained weight moved

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from lightning_vtr.models.vit import Attention, Block, CrossAttention, DistilledVisionTransformer, load_timm_deit
 
@@ -156,6 +157,28 @@ def test_cross_attention_adds_the_logit_bias_hand_computed():
     assert torch.allclose(attn(query, memory, bias), torch.tensor([[[e, 1, 3, 1]]]) / (e + 5), atol=1e-6)
     with pytest.raises(ValueError, match=r"`dim` must be divisible by `num_heads` 3, got 4"):
         CrossAttention(4, num_heads=3)
+
+
+@pytest.mark.parametrize(("dim", "heads"), [(64, 4), (768, 12)])
+def test_cross_attention_with_a_learned_bias_equals_torch_attention_with_that_mask(dim, heads):
+    # The merger's token scores enter as a bias that needs a gradient; the layer writes that case out. Outputs and
+    # gradients (inputs, memory, bias) must equal scaled_dot_product_attention given the bias as its mask.
+    torch.manual_seed(0)
+    attn = CrossAttention(dim, heads, qkv_bias=False)
+    x, memory = torch.randn(2, 5, dim, requires_grad=True), torch.randn(2, 9, dim, requires_grad=True)
+    scores = torch.randn(2, 9, requires_grad=True)
+    out = attn(x, memory, scores[:, None, None, :])
+    hd = dim // heads
+    q = attn.q(x).reshape(2, 5, heads, hd).transpose(1, 2)
+    k, v = attn.kv(memory).reshape(2, 9, 2, heads, hd).permute(2, 0, 3, 1, 4).unbind(0)
+    mask = scores[:, None, None, :].expand(2, heads, 5, 9)
+    ref = attn.proj(F.scaled_dot_product_attention(q, k, v, attn_mask=mask).transpose(1, 2).reshape(2, 5, dim))
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
+    grads = torch.autograd.grad(out.square().sum(), (x, memory, scores))
+    expected = torch.autograd.grad(ref.square().sum(), (x, memory, scores))
+    assert expected[2].abs().max() > 1e-3  # the bias does receive a gradient
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
 
 
 def test_cross_attention_matches_softmax_formula_with_heads_and_bias():
