@@ -66,30 +66,31 @@ except ImportError:  # pragma: no cover - depends on the Lightning version
 if TYPE_CHECKING:
     from typing_extensions import Self  # typing.Self needs Python 3.11
 
-__all__ = ["VIEW_SETS", "VoxelReconstructionModule", "fused_adam_options"]
+__all__ = ["VIEW_SETS", "VoxelReconstructionModule", "use_fused_adam"]
 
 
 #: Devices whose Adam and AdamW have a fused kernel in every torch release the package supports.
 _FUSED_ADAM_DEVICES = ("cpu", "cuda")
 
 
-def fused_adam_options(parameters: Iterable[Tensor]) -> dict[str, bool]:
-    """``{"fused": True}`` when every parameter can take torch's fused Adam / AdamW step, else ``{}``.
+def use_fused_adam(parameters: Iterable[Tensor]) -> bool | None:
+    """``fused=`` for ``torch.optim.Adam`` / ``AdamW``: ``True`` when every parameter can take torch's fused step,
+    else ``None`` (torch's own choice).
 
     The fused step updates all parameters in one kernel per device; the default one loops over the parameters
     in Python on the CPU (tiny LRGT: 0.7 ms against 3.5 ms per step on 2 cores). It is the same update up to
     rounding. It needs floating-point parameters on a device with the kernel (the CPU or CUDA).
 
     Example:
-        >>> fused_adam_options([torch.zeros(3, requires_grad=True)])
-        {'fused': True}
-        >>> fused_adam_options([torch.zeros(3, dtype=torch.long)])
-        {}
+        >>> use_fused_adam([torch.zeros(3, requires_grad=True)])
+        True
+        >>> use_fused_adam([torch.zeros(3, dtype=torch.long)]) is None
+        True
     """
     params = list(parameters)
     if params and all(p.is_floating_point() and p.device.type in _FUSED_ADAM_DEVICES for p in params):
-        return {"fused": True}
-    return {}
+        return True
+    return None
 
 
 def _metric_group(group: nn.Module) -> dict[str, VoxelIoU | VoxelFScore]:
