@@ -15,6 +15,11 @@ import torch
 # the workers do not fight over the cores.
 torch.set_num_threads(max(1, 2 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
 
+# The suite trains many small models: reuse freed memory as the package's own training processes do.
+from lightning_vtr.utils.memory import retain_freed_memory  # noqa: E402
+
+retain_freed_memory()
+
 TINY_DATASET = dict(
     categories=["chair", "table", "airplane"],
     objects_per_category=10,

@@ -316,8 +316,10 @@ def _trainer(config: ExperimentConfig, run_dir: Path, epochs: int, callbacks: li
     )
     kwargs.update(config.trainer_kwargs)
     from lightning_vtr.utils.feedback import EpochSummary, silence_lightning_tips
+    from lightning_vtr.utils.memory import retain_freed_memory
 
     silence_lightning_tips()  # Lightning 2.6 advertises two cloud services at every Trainer
+    retain_freed_memory()  # CPU steps reuse freed memory instead of faulting it in again (see the function)
     # a line per epoch (epoch, train loss, val IoU, time) instead of minutes of silence between epochs
     return L.Trainer(callbacks=[*(callbacks or []), EpochSummary()], **kwargs)
 

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from lightning_vtr.models.base import VoxelReconstructionModule, use_fused_adam
+from lightning_vtr.models.base import VoxelReconstructionModule, build_adam
 from lightning_vtr.models.lrgt_decoder import ProgressiveUpsamplingDecoder, decoder_stage_layout
 from lightning_vtr.models.lrgt_merger import SimilarTokenMerger
 from lightning_vtr.models.vit import Attention, Block, DistilledVisionTransformer, load_timm_deit
@@ -523,8 +523,7 @@ class LRGT(VoxelReconstructionModule):
 
     def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         hp = cast("AttributeDict", self.hparams)
-        params = list(self.parameters())
-        optimizer = torch.optim.AdamW(params, lr=hp.lr, weight_decay=hp.weight_decay, fused=use_fused_adam(params))
+        optimizer = build_adam(torch.optim.AdamW, self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
         milestones = list(hp.milestones) if hp.milestones is not None else [60, 90]
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=milestones, gamma=hp.gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from lightning_vtr.metrics.functional import DEFAULT_IOU_THRESHOLDS
-from lightning_vtr.models.base import VoxelReconstructionModule, use_fused_adam
+from lightning_vtr.models.base import VoxelReconstructionModule, build_adam
 from lightning_vtr.models.layers import BatchNorm3d, VolumeHead, channels_last_3d
 from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
 from lightning_vtr.models.weights import fetch_weights, is_restoring_checkpoint, restoring_checkpoint
@@ -633,9 +633,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
                 (self.refiner, hp.lr),
             )
         ]
-        groups = [g for g in groups if g["params"]]
-        fused = use_fused_adam(p for g in groups for p in g["params"])
-        optimizer = torch.optim.Adam(groups, betas=tuple(hp.betas), fused=fused)
+        optimizer = build_adam(torch.optim.Adam, [g for g in groups if g["params"]], betas=tuple(hp.betas))
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=list(hp.milestones), gamma=hp.gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
 

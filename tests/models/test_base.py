@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from lightning_vtr.evaluation.tables import results_from_test_output
-from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.base import VoxelReconstructionModule, build_adam
 from lightning_vtr.models.weights import is_restoring_checkpoint
 from lightning_vtr.protocol import ReconstructionModel
 
@@ -154,3 +154,37 @@ def test_log_sheets_logs_the_first_validation_objects_sheets_as_png_for_a_csv_lo
     one, two = np.asarray(Image.open(one[0])), np.asarray(Image.open(two[0]))
     # one sheet row per object, the same panels side by side
     assert two.shape[1] == one.shape[1] and two.shape[0] > 1.8 * one.shape[0]
+
+
+@pytest.mark.parametrize("optimizer_class", [torch.optim.Adam, torch.optim.AdamW])
+def test_build_adam_fuses_and_steps_like_the_loop_also_with_gradients_in_another_layout(optimizer_class):
+    # torch's fused kernel alone updates a channels_last_3d weight whose gradient is in the default layout against
+    # the wrong elements (off by a whole step); build_adam's hook copies such a gradient into the weight's layout.
+    torch.manual_seed(0)
+    shapes = [(4, 6, 4, 4, 4), (8, 3, 2, 2, 2), (5,)]
+    start = [torch.randn(s) for s in shapes]
+    start[0] = start[0].contiguous(memory_format=torch.channels_last_3d)
+    grads = [[torch.randn(s) for s in shapes] for _ in range(3)]  # default layout
+    results = []
+    for build in (lambda ps: build_adam(optimizer_class, ps, lr=0.01), lambda ps: optimizer_class(ps, lr=0.01)):
+        params = [torch.nn.Parameter(t.clone(memory_format=torch.preserve_format)) for t in start]
+        optimizer = build(params)
+        for step in grads:
+            for p, g in zip(params, step, strict=True):
+                p.grad = g.clone()
+            optimizer.step()
+        results.append((optimizer.defaults["fused"], params))
+    (fused, got), (looped, want) = results
+    assert fused is True and not looped
+    assert got[0].is_contiguous(memory_format=torch.channels_last_3d)
+    for a, b, t in zip(got, want, start, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
+        assert (a - t).abs().max() > 0.02  # three steps of lr 0.01 moved every weight
+
+
+def test_build_adam_leaves_integer_or_meta_parameters_to_torchs_default():
+    with torch.device("meta"):
+        meta = torch.nn.Parameter(torch.zeros(3))
+    assert build_adam(torch.optim.Adam, [meta], lr=0.1).defaults["fused"] is None
+    groups = [{"params": [torch.nn.Parameter(torch.zeros(2))], "lr": 0.1}]
+    assert build_adam(torch.optim.AdamW, groups).defaults["fused"] is True
