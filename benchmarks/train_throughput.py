@@ -12,6 +12,14 @@ the same machine load; the table gives the median of the repeats and the speed-u
 
     python benchmarks/train_throughput.py --model all --baseline-rev 0a4ca47 --repeats 3
 
+``--memory`` sets how each process's allocator treats freed memory: ``default`` (glibc as it starts, the
+default), ``retained`` (both processes keep freed memory for reuse, set through glibc's ``MALLOC_*`` variables:
+the code alone, without page faults between steps) or ``as-package`` (each process as that version's own
+training processes set themselves up: the working tree calls ``retain_freed_memory``, a version without it
+does nothing; what a user of ``lightning-vtr`` or the examples sees):
+
+    python benchmarks/train_throughput.py --model all --baseline-rev 0a4ca47 --memory as-package
+
 ``--jobs J`` also runs J processes at once, each with ``threads // J`` threads (what ``lightning-vtr report
 --jobs J`` does with its fits), and prints their summed rate against the one-process rate of the same run:
 
@@ -107,8 +115,9 @@ def _concurrent_rate(args: argparse.Namespace) -> float:
 _WORKER = """
 import json, sys, torch
 import lightning_vtr
-from train_throughput import MODELS, measure, measure_inference
+from train_throughput import MODELS, measure, measure_inference, set_up_memory
 name, threads, batch, views, steps, warmup = sys.argv[1], *map(int, sys.argv[2:7])
+set_up_memory(sys.argv[7])
 torch.set_num_threads(threads)
 torch.manual_seed(0)
 model = MODELS[name]()
@@ -116,6 +125,22 @@ train = measure(model, batch, views, steps, warmup)
 infer = measure_inference(model, batch, views, steps, warmup)
 print(json.dumps({{"train": train, "inference": infer, "package": lightning_vtr.__file__}}))
 """
+
+
+#: glibc settings of ``--memory retained``: those of ``lightning_vtr.utils.memory.retain_freed_memory``.
+_RETAINED_ENV = {"MALLOC_MMAP_THRESHOLD_": str(32 * 2**20), "MALLOC_TRIM_THRESHOLD_": str(256 * 2**20)}
+
+
+def set_up_memory(mode: str) -> bool:
+    """``--memory as-package``: call the imported version's ``retain_freed_memory`` if it has one (``True`` if it
+    did). The other modes need nothing here (``retained`` is set by the environment the process starts with)."""
+    if mode != "as-package":
+        return False
+    try:
+        from lightning_vtr.utils.memory import retain_freed_memory
+    except ImportError:  # a version from before the setting: its processes kept glibc's defaults
+        return False
+    return retain_freed_memory()
 
 
 def _extract(revision: str, into: Path) -> Path:
@@ -135,7 +160,9 @@ def _run_worker(tree: Path, args: argparse.Namespace, name: str) -> dict[str, fl
     code = _WORKER.format()
     # The package from ``tree``, the timing code from this file, so both sides are timed the same way.
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), str(Path(__file__).resolve().parent)])}
-    argv = [name, args.threads, args.batch_size, args.views, args.steps, args.warmup]
+    if args.memory == "retained":
+        env.update(_RETAINED_ENV)
+    argv = [name, args.threads, args.batch_size, args.views, args.steps, args.warmup, args.memory]
     done = subprocess.run(
         [sys.executable, "-c", code, *map(str, argv)], env=env, cwd=tree, capture_output=True, text=True, check=False
     )
@@ -167,7 +194,8 @@ def compare(args: argparse.Namespace, names: list[str]) -> None:
                 print(f"| {name} | {mode} | {old:.1f} | {new:.1f} | {new / old:.2f}x |", flush=True)
     print(
         f"\nbatch {args.batch_size}, {args.views} views, {args.threads} threads, {args.steps} timed steps after "
-        f"{args.warmup} warm-up, median of {args.repeats} interleaved repeats, each in a fresh process"
+        f"{args.warmup} warm-up, median of {args.repeats} interleaved repeats, each in a fresh process; "
+        f"memory: {args.memory}"
     )
 
 
@@ -182,12 +210,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--jobs", type=int, default=1, help="also measure this many processes at once")
     parser.add_argument("--baseline-rev", help="also measure this git revision, interleaved, and print speed-ups")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats of an A/B comparison")
+    parser.add_argument(
+        "--memory",
+        choices=["default", "retained", "as-package"],
+        default="default",
+        help="how each process's allocator treats freed memory (see the module docstring)",
+    )
     args = parser.parse_args(argv)
     names = sorted(MODELS) if args.model == "all" else [args.model]
     if args.baseline_rev:
         compare(args, names)
         return
     torch.set_num_threads(args.threads)
+    if args.memory != "default":  # one version here: both modes are its own setting
+        set_up_memory("as-package")
     for name in names:
         torch.manual_seed(0)
         model = MODELS[name]()

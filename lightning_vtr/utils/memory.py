@@ -39,8 +39,11 @@ def retain_freed_memory() -> bool:
     glibc's allocator itself (one of :data:`USER_SETTINGS`). Calling it again changes nothing.
 
     Example:
-        >>> retain_freed_memory() in (True, False)
-        True
+        Once, at the start of a script that trains on the CPU with its own ``Trainer``::
+
+            from lightning_vtr.utils.memory import retain_freed_memory
+
+            retain_freed_memory()
     """
     if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
         return False
