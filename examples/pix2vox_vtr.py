@@ -4,7 +4,7 @@ Pretrains tiny Pix2Vox++ on Aligned views, then fine-tunes it for the same numbe
 without augmentation and once with ``ErrorGuidedViewAugmentation``, and prints the paper's Table-1 layout
 (mIoU@0.4 and F-score on Aligned / Hemispherical / Spherical) for both.
 
-    python examples/pix2vox_vtr.py                       # ~4 min on 2 CPU cores
+    python examples/pix2vox_vtr.py                       # ~3 min on 2 CPU cores
     python examples/pix2vox_vtr.py --preset paper --data /data/shapenet_vtr --accelerator gpu --devices 4 \\
         --pretrain-epochs 100 --finetune-epochs 50 --batch-size 32
 
