@@ -92,8 +92,12 @@ def measure_inference(model: VoxelReconstructionModule, batch_size: int, views: 
     return batch_size * steps / (time.perf_counter() - start)
 
 
-def _rate_in_child(name: str, threads: int, batch_size: int, views: int, steps: int, warmup: int, start_at) -> float:
+def _rate_in_child(
+    name: str, threads: int, batch_size: int, views: int, steps: int, warmup: int, memory: str, start_at
+) -> float:
     torch.set_num_threads(threads)
+    if memory != "default":  # as the one-process measurement of main() does
+        set_up_memory("as-package")
     torch.manual_seed(0)
     model = MODELS[name]()
     start_at.wait()  # every process starts timing together, after its imports and model build
@@ -106,7 +110,7 @@ def _concurrent_rate(args: argparse.Namespace) -> float:
     with context.Manager() as manager:
         start_at = manager.Barrier(args.jobs)
         threads = max(1, args.threads // args.jobs)
-        work = (args.model, threads, args.batch_size, args.views, args.steps, args.warmup, start_at)
+        work = (args.model, threads, args.batch_size, args.views, args.steps, args.warmup, args.memory, start_at)
         with context.Pool(args.jobs) as pool:
             return sum(pool.starmap(_rate_in_child, [work] * args.jobs))
 
