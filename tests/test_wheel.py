@@ -1,11 +1,12 @@
 """The built wheel, installed into a fresh virtual environment outside the repository, works on its own.
 
 The sdist and the wheel are built the way ``python -m build`` builds them (the wheel from the unpacked sdist), so a
-file missing from either is missing here too. The virtual environment sees the machine's site-packages for torch,
-Lightning and the other dependencies (nothing is downloaded), and the wheel is installed into it with
-``--no-deps --force-reinstall``; the test checks that ``lightning_vtr`` is then imported from the venv's own
-site-packages, not from the repository (the development install is an editable one). Every command runs from a
-temporary directory outside the repository, without ``PYTHONPATH``.
+file missing from either is missing here too. The virtual environment sees the site-packages of the interpreter
+running the tests (the system one in CI, or the user's own virtual environment) for torch, Lightning and the other
+dependencies, after its own (nothing is downloaded), and the wheel is installed into it with ``--no-deps``; the test
+checks that ``lightning_vtr`` is then imported from the venv's own site-packages, not from the repository (the
+development install is an editable one, whose hook the new venv does not load). Every command runs from a temporary
+directory outside the repository, without ``PYTHONPATH``.
 """
 
 from __future__ import annotations
@@ -67,13 +68,30 @@ def venv(dist, tmp_path_factory) -> Path:
     """A virtual environment outside the repository with the wheel installed; returns its ``bin`` directory."""
     root = tmp_path_factory.mktemp("venv")
     assert ROOT not in root.resolve().parents
-    _run([sys.executable, "-m", "venv", "--system-site-packages", root / "env"], cwd=root)
+    _run([sys.executable, "-m", "venv", root / "env"], cwd=root)
     bin_dir = root / "env" / ("Scripts" if os.name == "nt" else "bin")
-    _run(
-        [bin_dir / "python", "-m", "pip", "install", "--no-deps", "--force-reinstall", "--no-index", dist["wheel"]],
-        cwd=root,
+    venv_site = Path(_run([bin_dir / "python", "-c", _PURELIB], cwd=root).stdout.strip())
+    # The running interpreter's package folders, after the venv's own: a path line in a .pth file adds the folder
+    # without running the .pth files inside it, so the editable install's import hook stays behind.
+    (venv_site / "_test_wheel_running_interpreter.pth").write_text(
+        "".join(f"{folder}\n" for folder in _package_folders()), encoding="utf-8"
     )
+    _run([bin_dir / "python", "-m", "pip", "install", "--no-deps", "--no-index", dist["wheel"]], cwd=root)
     return bin_dir
+
+
+_PURELIB = "import sysconfig; print(sysconfig.get_paths()['purelib'])"
+
+
+def _package_folders() -> list[str]:
+    """The site-packages folders of the interpreter running the tests (a venv's, the system's or both)."""
+    folders = [
+        entry
+        for entry in sys.path
+        if Path(entry).name in ("site-packages", "dist-packages") and Path(entry).is_dir() and ROOT != Path(entry)
+    ]
+    assert folders, f"no site-packages folder on sys.path: {sys.path}"
+    return folders
 
 
 def test_wheel_and_sdist_carry_the_data_files(dist):
