@@ -1,97 +1,154 @@
-"""One prepared check for the first time a GPU is available: prints one Markdown table.
+"""One prepared check for a short GPU run: a Markdown + JSON table written row by row.
 
-Rows (nothing is downloaded; every model has random weights):
+Rows, most valuable first (nothing is downloaded; every model has random weights):
 
-* ``fit``: tiny Pix2Vox++ trained 2 epochs in ``bf16-mixed`` with :class:`~lightning_vtr.ErrorGuidedViewAugmentation`
-  and mesh rendering, on a procedural dataset built in a temporary folder: seconds, final loss, generated samples.
-* ``selection <score>``: :class:`~lightning_vtr.selection.ErrorGuidedSelector` objects/s at K = 30 for the
-  ``paper``, ``released`` and ``visible`` scores, on the device (``benchmarks/view_selection.py``'s objects and timer).
+* ``train: <model> bf16-mixed``: paper-preset Pix2Vox++ and LRGT training samples/s and peak memory at batch 8,
+  autocast to bfloat16 around forward and loss (as Lightning's ``bf16-mixed`` does), random inputs.
 * ``zero123``: Zero-1-to-3 at full size (SD 1.x UNet, SD VAE, CLIP ViT-L/14; ``benchmarks/zero123.py``'s
   components) in fp16, 50 DDIM steps with guidance 3.0: seconds per image at batch 1 and 8, peak memory.
-* ``train <model>``: paper-preset Pix2Vox++ and LRGT training samples/s and peak memory at batch 8 in
-  bf16-mixed (autocast to bfloat16 around forward and loss, as Lightning's ``bf16-mixed`` does), random inputs.
+* ``selection: <score>``: :class:`~lightning_vtr.selection.ErrorGuidedSelector` objects/s at K = 30 for the
+  ``paper``, ``released`` and ``visible`` scores (``benchmarks/view_selection.py``'s objects and timer).
+* ``fit: Pix2Vox++ tiny + callback``: tiny Pix2Vox++ trained 2 epochs in ``bf16-mixed`` with
+  :class:`~lightning_vtr.ErrorGuidedViewAugmentation` and mesh rendering, on a procedural dataset built in a
+  temporary folder: seconds, final loss, generated samples. Needs the renderer (see below).
+* ``train: <model> 32-true``: the training rows in float32, for reference.
 
-A row that fails shows its error in the table; the other rows still run. Peak memory is
-``torch.cuda.max_memory_allocated`` of the row on CUDA, the process's peak resident size on CPU.
+How it runs, so that a run stopped anywhere still leaves a table:
 
-``--tiny`` shrinks every row for a CPU smoke run: a 10-object dataset and one training batch per epoch, selection
-on 4 objects at R = 16, the tests' tiny Zero-1-to-3 in float32 at 2 DDIM steps, tiny presets at batch 1::
+* The script needs no install: it puts the repository root on ``sys.path`` (and, for its child processes, on
+  ``PYTHONPATH``). ``--wheels DIR`` installs the wheels in ``DIR`` (``benchmarks/gpu_prepare.sh`` fetches them)
+  with ``pip install --no-index --no-deps --target DIR/site`` and appends ``DIR/site`` to ``sys.path`` *after*
+  site-packages, so they add the packages the machine lacks and shadow none of its own. Where ``DIR`` holds
+  several wheels of one project, the newest whose requirements the installed packages meet is used.
+* Every row runs in a fresh child process with a timeout (``--row-timeout-s``, and never past the budget);
+  on expiry its whole process group (data-loader and spawn workers included) is killed and the row records
+  it. A row that raises, or a CUDA error that ends its process, is recorded in that row; the next row starts
+  in a new process with a fresh CUDA context.
+* Each finished row is appended to ``OUT/gpu_check.jsonl`` (flushed) and ``OUT/gpu_check.md`` is rewritten
+  with the whole table; each child's output goes to ``OUT/logs/<row>.log``.
+* After ``--budget-s`` seconds no row starts; the rows left are listed as skipped, by name.
+* The first row that renders starts with a renderer probe (pyrender with EGL, one 32 px view of a box, in a
+  child process with a timeout); if the probe fails, the rendering rows are skipped with its error.
+* On a CPU the full-size rows are refused; ``--tiny`` shrinks every row for a CPU smoke run (a 10-object
+  dataset and one training batch per epoch, selection on 4 objects at R = 16, the tests' tiny Zero-1-to-3 in
+  float32 at 2 DDIM steps, tiny presets at batch 1). The exit status is 0 when every row ran without error.
 
-    python benchmarks/gpu_check.py                      # on the GPU (sized to finish within 8 minutes)
-    python benchmarks/gpu_check.py --tiny --device cpu  # smoke run
-    python benchmarks/gpu_check.py --out gpu_check.md   # also write the table to a file
+Run::
+
+    benchmarks/gpu_prepare.sh                                                       # here: fetch the wheels
+    python3 benchmarks/gpu_check.py --wheels .gpu_wheels --out OUT --budget-s 420   # on the GPU machine
+    python benchmarks/gpu_check.py --tiny --device cpu --budget-s 120 --out OUT     # CPU smoke run
+    python benchmarks/gpu_check.py --rows zero123,"fit: Pix2Vox++ tiny + callback" --out OUT  # some rows only
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import importlib.util
+import json
 import os
-import resource
+import re
+import signal
+import subprocess
 import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Callable
-from dataclasses import dataclass, field
+import zipfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import ModuleType
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
-os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
-
-import torch
+from typing import Any
 
 _HERE = Path(__file__).resolve().parent
+ROOT = _HERE.parent
+if str(ROOT) not in sys.path:  # `python benchmarks/gpu_check.py` puts benchmarks/, not the root, first
+    sys.path.insert(0, str(ROOT))
+
 #: share of the training objects given new views per selection in the fit row; its 2 epochs select twice (before
 #: epoch 0 and after it), so it generates ``2 * round(FIT_FRACTION * train objects)`` samples
 FIT_FRACTION = 0.34
 SCORES = ("paper", "released", "visible")
+MODELS = {"pix2vox": "Pix2Vox++", "lrgt": "LRGT"}
+#: seconds a probe child process may take (environment report, renderer probe)
+PROBE_TIMEOUT_S = 90.0
+#: seconds between SIGTERM and SIGKILL of a row's process group
+KILL_GRACE_S = 5.0
 
 
 @dataclass
 class Row:
-    """One line of the table: what was checked, how, and its numbers (or the error that stopped it)."""
+    """One line of the table: what was checked, how, its numbers, and the error or reason that stopped it.
+
+    ``error`` is set when the row ran and failed (exception, crash, timeout); ``skipped`` when it never ran
+    (budget spent, renderer missing, full size refused on a CPU). ``wall_s`` counts the child process's start.
+    """
 
     check: str
     setup: str = ""
     results: dict[str, float] = field(default_factory=dict)
     error: str | None = None
+    skipped: str | None = None
+    wall_s: float | None = None
 
 
+@dataclass
+class RowSpec:
+    """How to run one row: ``command`` plus ``["--result", path]`` is run as a child process, which writes the
+    row's JSON (``{"setup", "results"}`` or ``{"error"}``) to that path."""
+
+    check: str
+    command: list[str]
+    timeout_s: float
+    needs_renderer: bool = False
+    full_size: bool = False
+
+
+# ============================================================================================ the child rows
 def _load(path: Path, name: str) -> ModuleType:
     """Import a script by path (``benchmarks/`` and ``tests/`` are no packages), once."""
     if name not in sys.modules:
         spec = importlib.util.spec_from_file_location(name, path)
+        assert spec is not None and spec.loader is not None, path
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
         spec.loader.exec_module(module)
     return sys.modules[name]
 
 
-def _sync(device: torch.device) -> None:
+def _sync(device: Any) -> None:
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
 
-def _reset_peak(device: torch.device) -> None:
+def _reset_peak(device: Any) -> None:
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
 
 
-def _peak_gib(device: torch.device) -> float:
+def _peak_gib(device: Any) -> float:
+    import resource
+
+    import torch
+
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**30
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
 
-def _memory_name(device: torch.device) -> str:
+def _memory_name(device: Any) -> str:
     return "peak GiB" if device.type == "cuda" else "peak RSS GiB"
 
 
-# ---------------------------------------------------------------------------------------------------- rows
-def fit_row(device: torch.device, tiny: bool) -> Row:
+def fit_row(device: Any, tiny: bool) -> Row:
     """Tiny Pix2Vox++ with the callback (render synthesizer), 2 epochs in bf16-mixed on a fresh procedural dataset."""
     import lightning as L
 
@@ -102,6 +159,7 @@ def fit_row(device: torch.device, tiny: bool) -> Row:
     from lightning_vtr.utils.feedback import silence_lightning_tips
 
     silence_lightning_tips()
+    data: dict[str, Any]
     if tiny:  # 2 x 5 objects split 3/1/1 per category
         data = dict(categories=["chair", "table"], objects_per_category=5, split=(0.6, 0.2, 0.2), image_size=32)
         data.update(views_per_set=4, workers=1)
@@ -154,13 +212,13 @@ def fit_row(device: torch.device, tiny: bool) -> Row:
             "dataset build s": build_s,
         }
     setup = (
-        f"{device.type}, bf16-mixed, 2 epochs{' of 1 batch' if tiny else ''}, batch {dm.batch_size}, fraction {FIT_FRACTION}, "
-        f"render {render_size} px, loss dtype {str(loss.dtype).removeprefix('torch.')}"
+        f"{device.type}, bf16-mixed, 2 epochs{' of 1 batch' if tiny else ''}, batch {dm.batch_size}, "
+        f"fraction {FIT_FRACTION}, render {render_size} px, loss dtype {str(loss.dtype).removeprefix('torch.')}"
     )
     return Row("fit: Pix2Vox++ tiny + callback", setup, results)
 
 
-def selection_row(device: torch.device, tiny: bool, score: str) -> Row:
+def selection_row(device: Any, tiny: bool, score: str) -> Row:
     """ErrorGuidedSelector objects/s at K = 30 for ``score`` (view_selection.py's objects and timer)."""
     bench = _load(_HERE / "view_selection.py", "_gpu_check_view_selection")
     batch, res, repeats = (4, 16, 2) if tiny else (64, 32, 7)
@@ -178,14 +236,16 @@ def selection_row(device: torch.device, tiny: bool, score: str) -> Row:
     return Row(f"selection: {score}", f"{device.type}, K = 30, {batch} objects, R = {res}, {repeats} repeats", results)
 
 
-def zero123_row(device: torch.device, tiny: bool) -> Row:
-    """Zero-1-to-3 with random weights: seconds per image at batch 1 and 8 (50 DDIM steps, guidance 3.0)."""
+def zero123_row(device: Any, tiny: bool) -> Row:
+    """Zero-1-to-3 with random weights: seconds per image at batch 1 and 8 (guidance 3.0)."""
+    import torch
+
     from lightning_vtr.synthesis.zero123 import Zero123Synthesizer
 
     bench = _load(_HERE / "zero123.py", "_gpu_check_zero123")
     torch.manual_seed(0)
     if tiny:  # the tests' tiny model: 64 x 64
-        fixtures = _load(_HERE.parent / "tests" / "synthesis" / "conftest.py", "_gpu_check_zero123_fixtures")
+        fixtures = _load(ROOT / "tests" / "synthesis" / "conftest.py", "_gpu_check_zero123_fixtures")
         components, dtype, steps, size = fixtures.build_tiny_components(), torch.float32, 2, "tiny 64 px"
     else:  # built on the device: random initialisation of ~1.2 G parameters is slow on the CPU
         with torch.device(device):
@@ -210,8 +270,13 @@ def zero123_row(device: torch.device, tiny: bool) -> Row:
     )
 
 
-def train_row(device: torch.device, tiny: bool, name: str) -> Row:
-    """Training samples/s and peak memory of a preset (``pix2vox`` or ``lrgt``) in bf16-mixed on random inputs."""
+def train_row(device: Any, tiny: bool, name: str, precision: str) -> Row:
+    """Training samples/s and peak memory of a preset (``pix2vox`` or ``lrgt``) in ``precision`` on random inputs.
+
+    ``precision`` is ``"bf16-mixed"`` (autocast to bfloat16 around forward and loss) or ``"32-true"``.
+    """
+    import torch
+
     from lightning_vtr.models import LRGT, Pix2VoxPlusPlus
 
     preset, batch, warmup, steps = ("tiny", 1, 1, 1) if tiny else ("paper", 8, 3, 10)
@@ -223,12 +288,17 @@ def train_row(device: torch.device, tiny: bool, name: str) -> Row:
     images = torch.randn(batch, model.num_views, 3, s, s, device=device)
     voxels = (torch.rand(batch, r, r, r, device=device) > 0.7).float()
     _reset_peak(device)
+    start = time.perf_counter()
     for step in range(warmup + steps):
         if step == warmup:
             _sync(device)
             start = time.perf_counter()
         optimizer.zero_grad(set_to_none=True)
-        with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
+        if precision == "bf16-mixed":
+            autocast: Any = torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+        else:
+            autocast = contextlib.nullcontext()
+        with autocast:
             loss = model.loss(model(images), voxels)
         loss.backward()
         optimizer.step()
@@ -237,37 +307,303 @@ def train_row(device: torch.device, tiny: bool, name: str) -> Row:
     results = {"samples/s": rate, _memory_name(device): _peak_gib(device), "loss": float(loss.detach())}
     params = sum(p.numel() for p in model.parameters()) / 1e6
     setup = (
-        f"{device.type}, {preset} preset ({params:.1f} M params, {s} px, {model.num_views} views), bf16-mixed, "
+        f"{device.type}, {preset} preset ({params:.1f} M params, {s} px, {model.num_views} views), {precision}, "
         f"batch {batch}, {warmup} warm-up + {steps} timed steps"
     )
-    return Row(f"train: {'Pix2Vox++' if name == 'pix2vox' else 'LRGT'}", setup, results)
+    return Row(f"train: {MODELS[name]} {precision}", setup, results)
 
 
-def rows(device: torch.device, tiny: bool) -> list[tuple[str, Callable[[], Row]]]:
-    """``(check, function)`` for every row, in table order."""
-    out = [("fit: Pix2Vox++ tiny + callback", lambda: fit_row(device, tiny))]
-    out += [(f"selection: {s}", lambda s=s: selection_row(device, tiny, s)) for s in SCORES]
-    out += [("zero123", lambda: zero123_row(device, tiny))]
-    out += [
-        (f"train: {label}", lambda n=n: train_row(device, tiny, n))
-        for n, label in (("pix2vox", "Pix2Vox++"), ("lrgt", "LRGT"))
-    ]
+def row_functions(tiny: bool) -> dict[str, tuple[Callable[[Any], Row], float, bool]]:
+    """``check -> (function of the device, full-size timeout in s, needs the renderer)``, in table order."""
+    out: dict[str, tuple[Callable[[Any], Row], float, bool]] = {}
+    for name, label in MODELS.items():
+        out[f"train: {label} bf16-mixed"] = (lambda d, n=name: train_row(d, tiny, n, "bf16-mixed"), 150.0, False)
+    out["zero123"] = (lambda d: zero123_row(d, tiny), 240.0, False)
+    for score in SCORES:
+        out[f"selection: {score}"] = (lambda d, s=score: selection_row(d, tiny, s), 90.0, False)
+    out["fit: Pix2Vox++ tiny + callback"] = (lambda d: fit_row(d, tiny), 240.0, True)
+    for name, label in MODELS.items():
+        out[f"train: {label} 32-true"] = (lambda d, n=name: train_row(d, tiny, n, "32-true"), 150.0, False)
     return out
 
 
-def run_row(check: str, fn: Callable[[], Row], device: torch.device) -> Row:
-    """``fn()``, or a row holding its error (the traceback goes to stderr)."""
-    print(f"[gpu_check] {check} ...", file=sys.stderr, flush=True)
-    start = time.perf_counter()
+CHECKS = tuple(row_functions(tiny=True))
+"""Every row's name, in table order."""
+
+
+def _error_text(err: BaseException) -> str:
+    first = str(err).splitlines()[0] if str(err) else ""
+    return f"{type(err).__name__}: {first}"[:300]
+
+
+def _child_row(check: str, device_name: str, tiny: bool, result: Path) -> int:
+    """Run one row in this (child) process and write its JSON to ``result``; 0, or 1 when the row failed."""
+    import torch
+
+    device = torch.device(device_name)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    fn = row_functions(tiny)[check][0]
     try:
-        row = fn()
+        row = fn(device)
+        payload: dict[str, Any] = {"setup": row.setup, "results": row.results}
+        status = 0
     except Exception as err:
-        traceback.print_exc(file=sys.stderr)
-        row = Row(check, error=f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:300])
-    finally:
-        if device.type == "cuda":
-            torch.cuda.empty_cache()
-    print(f"[gpu_check] {check}: {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
+        traceback.print_exc()
+        text = _error_text(err)
+        if device.type == "cuda" and "CUDA" in str(err):
+            text += " (CUDA error; the next row starts in a fresh process)"
+        payload, status = {"error": text}, 1
+    result.write_text(json.dumps(payload))
+    return status
+
+
+def _child_environment(result: Path) -> int:
+    """Write the device, versions and optional imports of this interpreter to ``result`` (``{"results": ...}``)."""
+    import platform
+
+    info: dict[str, Any] = {"python": platform.python_version()}
+    try:
+        import torch
+
+        info.update(torch=torch.__version__, cuda=torch.version.cuda, cuda_available=torch.cuda.is_available())
+        if info["cuda_available"]:
+            props = torch.cuda.get_device_properties(0)
+            info.update(
+                device=torch.cuda.get_device_name(0),
+                capability=".".join(map(str, torch.cuda.get_device_capability(0))),
+                memory_gib=round(props.total_memory / 2**30, 1),
+                device_count=torch.cuda.device_count(),
+            )
+        else:
+            info["device"] = f"CPU ({os.cpu_count()} cores)"
+    except Exception as err:
+        info["torch_error"] = _error_text(err)
+    versions = {}
+    for module in ("lightning", "torchmetrics", "numpy", "transformers", "huggingface_hub", "diffusers", "trimesh"):
+        try:
+            versions[module] = getattr(importlib.import_module(module), "__version__", "?")
+        except Exception as err:
+            versions[module] = f"absent ({_error_text(err)})"
+    for module in ("pyrender", "jsonargparse"):
+        try:
+            importlib.import_module(module)
+            versions[module] = "imports"
+        except Exception as err:
+            versions[module] = f"absent ({_error_text(err)})"
+    info["packages"] = versions
+    result.write_text(json.dumps({"results": info}))
+    return 0
+
+
+def _child_renderer(result: Path) -> int:
+    """Render one 32 px view of a box with the package's renderer; write ``{"results"}`` or ``{"error"}``."""
+    try:
+        import trimesh
+
+        from lightning_vtr.renderer import Renderer
+
+        start = time.perf_counter()
+        with Renderer(image_size=32) as renderer:
+            rgba = renderer.render(trimesh.creation.box(extents=(0.6, 0.6, 0.6)), [[30.0, 20.0]])
+        covered = float((rgba[..., 3] > 0).mean())
+        if not covered > 0:
+            raise RuntimeError(f"the rendered box covers no pixel (image shape {rgba.shape})")
+        payload: dict[str, Any] = {
+            "setup": f"pyrender, PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}, one 32 px view",
+            "results": {"s": time.perf_counter() - start, "covered share": covered},
+        }
+        status = 0
+    except Exception as err:
+        traceback.print_exc()
+        payload, status = {"error": _error_text(err)}, 1
+    result.write_text(json.dumps(payload))
+    return status
+
+
+# ============================================================================================ wheels
+def _wheel_name(path: Path) -> tuple[str, str]:
+    """``(normalised project name, version)`` from a wheel's file name."""
+    name, version = path.name.split("-")[:2]
+    return re.sub(r"[-_.]+", "-", name).lower(), version
+
+
+def _installed_version(project: str) -> str | None:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version(project)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def choose_wheels(
+    wheels: Sequence[Path], installed: Callable[[str], str | None] = _installed_version
+) -> tuple[list[Path], list[str]]:
+    """The wheels to install: one per project.
+
+    Where several wheels of one project are given, the newest whose requirements (those without an extra or
+    environment marker that excludes them) on *installed* projects are all met is chosen; the newest if none is.
+
+    Args:
+        wheels: ``.whl`` paths.
+        installed: the installed version of a project (normalised name), ``None`` when absent.
+
+    Returns:
+        ``(chosen wheels sorted by name, one line per choice made among several)``.
+    """
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    groups: dict[str, list[Path]] = {}
+    for wheel in wheels:
+        groups.setdefault(_wheel_name(wheel)[0], []).append(wheel)
+    chosen, notes = [], []
+    for project, paths in sorted(groups.items()):
+        paths = sorted(paths, key=lambda p: Version(_wheel_name(p)[1]), reverse=True)
+        if len(paths) == 1:
+            chosen.append(paths[0])
+            continue
+        pick, reasons = paths[0], []
+        for path in paths:
+            with zipfile.ZipFile(path) as archive:
+                meta = next(n for n in archive.namelist() if n.endswith(".dist-info/METADATA"))
+                lines = archive.read(meta).decode().splitlines()
+            unmet = []
+            for line in lines:
+                if not line.startswith("Requires-Dist:"):
+                    continue
+                req = Requirement(line.split(":", 1)[1].strip())
+                if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+                    continue
+                have = installed(re.sub(r"[-_.]+", "-", req.name).lower())
+                if have is not None and not req.specifier.contains(have, prereleases=True):
+                    unmet.append(f"{req.name}{req.specifier} (installed {have})")
+            if not unmet:
+                pick = path
+                break
+            reasons.append(f"{path.name}: {', '.join(unmet)}")
+        chosen.append(pick)
+        notes.append(f"{project}: {pick.name}" + (f" (not {'; '.join(reasons)})" if reasons else ""))
+    return chosen, notes
+
+
+def install_wheels(wheel_dir: Path, site: Path, log: Path) -> list[str]:
+    """Install the chosen wheels of ``wheel_dir`` into ``site`` (``pip --no-index --no-deps --target``).
+
+    Returns:
+        Lines for the table's header: the choices made and the installed wheels.
+
+    Raises:
+        FileNotFoundError: ``wheel_dir`` holds no wheel.
+        RuntimeError: pip failed (its output is in ``log``).
+    """
+    wheels = sorted(wheel_dir.glob("*.whl"))
+    if not wheels:
+        raise FileNotFoundError(f"--wheels {wheel_dir}: no .whl file there (run benchmarks/gpu_prepare.sh)")
+    chosen, notes = choose_wheels(wheels)
+    command = [sys.executable, "-m", "pip", "install", "--no-index", "--no-deps", "--upgrade"]
+    command += ["--disable-pip-version-check", "--target", str(site), *map(str, chosen)]
+    with open(log, "w") as out:
+        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, timeout=300, check=False)
+    if done.returncode != 0:
+        text = log.read_text()
+        if "No module named pip" not in text:
+            tail = text.strip().splitlines()[-1:] or [""]
+            raise RuntimeError(f"pip install --target {site} ended with code {done.returncode}: {tail[0]}")
+        for wheel in chosen:  # no pip: a wheel is a zip of its site-packages files (and *.data/ trees)
+            _unpack_wheel(wheel, site)
+        notes.append("no pip here: the wheels were unpacked with zipfile")
+    return [*notes, "installed: " + ", ".join(p.name for p in chosen)]
+
+
+def _unpack_wheel(wheel: Path, site: Path) -> None:
+    """Unpack ``wheel`` into ``site`` as pip would place its library files (``*.data/purelib|platlib`` at top)."""
+    with zipfile.ZipFile(wheel) as archive:
+        for member in archive.namelist():
+            parts = Path(member).parts
+            if parts[0].endswith(".data"):
+                if len(parts) < 3 or parts[1] not in ("purelib", "platlib"):
+                    continue  # scripts, headers, data: not needed to import
+                parts = parts[2:]
+            target = site.joinpath(*parts)
+            if member.endswith("/"):
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(archive.read(member))
+
+
+# ============================================================================================ the runner
+def _slug(check: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", check).strip("_")
+
+
+def _kill_group(process: subprocess.Popen) -> None:
+    """SIGTERM, then SIGKILL, to the process group of ``process`` (started in a new session); never blocks long.
+
+    A process stuck in the kernel (a hung driver call) may outlive SIGKILL for a while: it is left behind
+    after ``2 * KILL_GRACE_S`` seconds rather than blocking the table.
+    """
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            break
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=KILL_GRACE_S)
+
+
+def _log_tail(log: Path, lines: int = 1) -> str:
+    try:
+        text = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return ""
+    return " / ".join(text[-lines:])[:300]
+
+
+def run_child(spec: RowSpec, timeout_s: float, log_dir: Path, env: Mapping[str, str] | None = None) -> Row:
+    """Run ``spec.command --result FILE`` in a new process group; kill the group after ``timeout_s``.
+
+    Returns:
+        The row from the child's JSON, or one whose ``error`` says how the child ended without it (timeout,
+        exit code or signal, and the last line of its log ``log_dir/<check>.log``).
+    """
+    log = log_dir / f"{_slug(spec.check)}.log"
+    with tempfile.TemporaryDirectory(prefix="gpu_check_row_") as tmp:
+        result = Path(tmp) / "row.json"
+        start = time.perf_counter()
+        with open(log, "w") as out:
+            process = subprocess.Popen(
+                [*spec.command, "--result", str(result)],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                env=None if env is None else dict(env),
+                cwd=ROOT,
+            )
+            try:
+                code: int | None = process.wait(timeout=max(timeout_s, 0.0))
+            except subprocess.TimeoutExpired:
+                code = None
+            _kill_group(process)  # also ends workers the row left behind
+        wall = time.perf_counter() - start
+        payload: dict[str, Any] = {}
+        if result.exists():
+            try:
+                payload = json.loads(result.read_text())
+            except json.JSONDecodeError as err:
+                payload = {"error": f"unreadable result ({err})"}
+    row = Row(spec.check, payload.get("setup", ""), payload.get("results", {}), payload.get("error"), wall_s=wall)
+    if not payload:
+        if code is None:
+            how = f"no result within {timeout_s:.0f} s; its processes were killed"
+        elif code < 0:
+            how = f"its process ended by {signal.Signals(-code).name} without a result"
+        else:
+            how = f"its process ended with code {code} without a result"
+        tail = _log_tail(log)
+        row.error = how + (f"; last log line: {tail}" if tail else "")
     return row
 
 
@@ -275,37 +611,232 @@ def _number(value: float) -> str:
     return str(value) if isinstance(value, int) else f"{value:.4g}"
 
 
-def markdown(table: list[Row], caption: str) -> str:
-    """The table: one line per row, results as ``name value`` pairs (``ERROR: ...`` for a failed row)."""
-    lines = [caption, "", "| check | setup | results |", "| --- | --- | --- |"]
+def markdown(table: Sequence[Row], header: Sequence[str]) -> str:
+    """The header lines and the table: one line per row, ``name value`` pairs, ``ERROR:`` or ``SKIPPED:``."""
+    lines = [*header, "", "| check | setup | results | wall s |", "| --- | --- | --- | --- |"]
     for row in table:
-        cell = f"ERROR: {row.error}" if row.error else "; ".join(f"{k} {_number(v)}" for k, v in row.results.items())
-        lines.append("| " + " | ".join(part.replace("|", "/") for part in (row.check, row.setup, cell)) + " |")
+        if row.error:
+            cell = f"ERROR: {row.error}"
+        elif row.skipped:
+            cell = f"SKIPPED: {row.skipped}"
+        else:
+            cell = "; ".join(f"{k} {_number(v)}" for k, v in row.results.items())
+        wall = "" if row.wall_s is None else f"{row.wall_s:.1f}"
+        cells = (row.check, row.setup, cell, wall)
+        lines.append("| " + " | ".join(part.replace("|", "/").replace("\n", " ") for part in cells) + " |")
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> list[Row]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+class Table:
+    """The rows so far, written to ``out`` after each one: ``gpu_check.jsonl`` appended, ``gpu_check.md`` rewritten."""
+
+    def __init__(self, out: Path, header: list[str], info: Mapping[str, Any]) -> None:
+        self.out, self.header = out, header
+        self.rows: list[Row] = []
+        self.jsonl = out / "gpu_check.jsonl"
+        self.jsonl.write_text("")
+        self._append({"header": header, "environment": dict(info)})
+        self._write_markdown()
+
+    def _append(self, record: Mapping[str, Any]) -> None:
+        with open(self.jsonl, "a") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def _write_markdown(self) -> None:
+        tmp = self.out / "gpu_check.md.tmp"
+        tmp.write_text(markdown(self.rows, self.header) + "\n")
+        os.replace(tmp, self.out / "gpu_check.md")
+
+    def add(self, row: Row) -> None:
+        """Keep ``row``, write it out and print its table line."""
+        self.rows.append(row)
+        self._append(asdict(row))
+        self._write_markdown()
+        print(markdown([row], []).splitlines()[-1], flush=True)
+
+
+def run_table(
+    specs: Sequence[RowSpec],
+    out: Path,
+    header: list[str],
+    *,
+    budget_s: float,
+    start: float,
+    renderer_probe: RowSpec | None = None,
+    refuse_full_size: str | None = None,
+    env: Mapping[str, str] | None = None,
+    info: Mapping[str, Any] | None = None,
+) -> list[Row]:
+    """Run ``specs`` in order, one child process each, writing every row to ``out`` as it finishes.
+
+    Args:
+        specs: the rows.
+        out: folder for ``gpu_check.md``, ``gpu_check.jsonl`` and ``logs/``.
+        header: lines above the table.
+        budget_s: seconds after ``start`` (a ``time.perf_counter()`` value) when no row may run any longer:
+            a running row is stopped there, the rows after it are skipped by name.
+        renderer_probe: run (once, as a row of the table) before the first row with ``needs_renderer``;
+            when it fails those rows are skipped with its error. ``None``: no probe.
+        refuse_full_size: reason for skipping every row with ``full_size``; ``None`` runs them.
+        env: environment of the child processes (``None``: this process's).
+        info: the environment report, stored in the JSON's first line.
+
+    Returns:
+        The table's rows: ``specs`` in order, with the probe's row before the first rendering row.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "logs").mkdir(exist_ok=True)
+    table = Table(out, header, info or {})
+    renderer_error: str | None = None
+    probed = False
+
+    def remaining() -> float:
+        return budget_s - (time.perf_counter() - start)
+
+    def run(spec: RowSpec) -> Row:
+        if remaining() <= 0:
+            return Row(spec.check, skipped=f"the budget of {budget_s:.0f} s was spent before this row")
+        print(f"[gpu_check] {spec.check} ...", file=sys.stderr, flush=True)
+        left = remaining()
+        row = run_child(spec, min(spec.timeout_s, left), out / "logs", env)
+        if row.error and row.error.startswith("no result within") and left < spec.timeout_s:
+            row.error = f"stopped when the budget of {budget_s:.0f} s ran out ({row.wall_s:.0f} s into the row)"
+        print(f"[gpu_check] {spec.check}: {row.wall_s:.1f} s", file=sys.stderr, flush=True)
+        return row
+
+    for spec in specs:
+        if refuse_full_size is not None and spec.full_size:
+            table.add(Row(spec.check, skipped=refuse_full_size))
+            continue
+        if spec.needs_renderer and renderer_probe is not None:
+            if not probed:
+                probed = True
+                probe = run(renderer_probe)
+                table.add(probe)
+                if probe.error:
+                    renderer_error = f"renderer probe failed: {probe.error}"
+                elif probe.skipped:
+                    renderer_error = probe.skipped
+            if renderer_error is not None:
+                table.add(Row(spec.check, skipped=renderer_error))
+                continue
+        table.add(run(spec))
+    return table.rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the check (or, with the hidden ``--child-*`` options, one row in this process); the exit status."""
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder for gpu_check.md, gpu_check.jsonl, logs/")
     parser.add_argument("--tiny", action="store_true", help="small shapes for a CPU smoke run")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--out", type=Path, help="also write the table to this file")
-    args = parser.parse_args(argv)
-    device = torch.device(args.device)
-    if device.type == "cuda" and device.index is None:
-        device = torch.device("cuda", torch.cuda.current_device())
-    start = time.perf_counter()
-    table = [run_row(check, fn, device) for check, fn in rows(device, args.tiny)]
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {torch.get_num_threads()} threads"
-    caption = (
-        f"gpu_check{' --tiny' if args.tiny else ''} on {name}: torch {torch.__version__}, "
-        f"{time.perf_counter() - start:.0f} s in all"
+    parser.add_argument(
+        "--device", default="auto", help="'auto' (CUDA if available, else CPU), 'cuda', 'cuda:1', 'cpu'"
     )
-    text = markdown(table, caption)
+    parser.add_argument("--budget-s", type=float, default=480.0, help="no row runs past this many seconds")
+    parser.add_argument("--row-timeout-s", type=float, help="one timeout for every row (default: each row's own)")
+    parser.add_argument("--rows", help="comma-separated checks to run, in table order (default: all)")
+    parser.add_argument("--wheels", type=Path, help="folder of wheels to install into WHEELS/site first")
+    parser.add_argument("--site", type=Path, help=argparse.SUPPRESS)  # children: append to sys.path
+    parser.add_argument("--child-row", help=argparse.SUPPRESS)
+    parser.add_argument("--child-environment", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--child-renderer", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
+    if argv is None:
+        argv = sys.argv[1:]
+    child = any(a.startswith("--child-") for a in argv)
+    if child:  # a child needs no --out
+        for action in parser._actions:
+            action.required = False
+    args = parser.parse_args(argv)
+    if args.site is not None and str(args.site) not in sys.path:
+        sys.path.append(str(args.site))  # after site-packages: adds, never shadows
+    if args.child_environment:
+        return _child_environment(args.result)
+    if args.child_renderer:
+        return _child_renderer(args.result)
+    if args.child_row:
+        return _child_row(args.child_row, args.device, args.tiny, args.result)
+
+    start = time.perf_counter()
+    out: Path = args.out.resolve()
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    env.setdefault("HF_HUB_OFFLINE", "1")
+    env.setdefault("TRANSFORMERS_VERBOSITY", "error")
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    notes: list[str] = []
+    site: Path | None = None
+    if args.wheels is not None:
+        site = args.wheels.resolve() / "site"
+        try:
+            notes += install_wheels(args.wheels.resolve(), site, out / "logs" / "pip_install.log")
+        except Exception as err:
+            notes.append(f"wheel install failed: {_error_text(err)}")
+
+    environment_command = [sys.executable, str(Path(__file__).resolve()), "--child-environment"]
+    environment_command += ["--site", str(site)] if site is not None else []
+    env_row = run_child(
+        RowSpec("environment", environment_command, PROBE_TIMEOUT_S), PROBE_TIMEOUT_S, out / "logs", env
+    )
+    info: dict[str, Any] = {"error": env_row.error} if env_row.error else dict(env_row.results)
+    device = args.device
+    if device == "auto":
+        device = "cuda" if info.get("cuda_available") else "cpu"
+    refuse = None
+    if device.startswith("cpu") and not args.tiny:
+        refuse = "full-size row refused on a CPU (no CUDA device, or --device cpu); --tiny runs the small rows"
+
+    functions = row_functions(args.tiny)
+    wanted = list(functions)
+    if args.rows:
+        wanted = [c.strip() for c in args.rows.split(",") if c.strip()]
+        unknown = [c for c in wanted if c not in functions]
+        if unknown:
+            parser.error(f"--rows: unknown check(s) {unknown}; the checks are {list(functions)}")
+        wanted = [c for c in functions if c in wanted]
+    base = [sys.executable, str(Path(__file__).resolve()), "--device", device]
+    base += ["--tiny"] if args.tiny else []
+    base += ["--site", str(site)] if site is not None else []
+    specs = []
+    for check in wanted:
+        _, timeout, needs_renderer = functions[check]
+        if args.row_timeout_s is not None:
+            timeout = args.row_timeout_s
+        elif args.tiny:
+            timeout = 120.0
+        specs.append(RowSpec(check, [*base, "--child-row", check], timeout, needs_renderer, full_size=not args.tiny))
+    probe = RowSpec("renderer probe", [*base, "--child-renderer"], PROBE_TIMEOUT_S)
+
+    header = [_caption(info, device, args), *(f"- {note}" for note in notes)]
+    table = run_table(
+        specs, out, header, budget_s=args.budget_s, start=start, renderer_probe=probe,
+        refuse_full_size=refuse, env=env, info=info,
+    )  # fmt: skip
+    header[0] += f"; {time.perf_counter() - start:.0f} s in all"
+    text = markdown(table, header)
+    (out / "gpu_check.md").write_text(text + "\n")
     print(text, flush=True)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
-    return table
+    return 0 if all(row.error is None and row.skipped is None for row in table) else 1
+
+
+def _caption(info: Mapping[str, Any], device: str, args: argparse.Namespace) -> str:
+    """The table's first line: how it was run and on what."""
+    if "error" in info:
+        where = f"device {device} (environment report failed: {info['error']})"
+    else:
+        where = (
+            f"{info.get('device', device)}"
+            + (f" (sm {info['capability']}, {info['memory_gib']} GiB)" if "capability" in info else "")
+            + f": torch {info.get('torch')}, CUDA {info.get('cuda')}, Python {info.get('python')}"
+        )
+        packages = info.get("packages", {})
+        if packages:
+            where += "; " + ", ".join(f"{k} {v}" for k, v in packages.items())
+    return f"gpu_check{' --tiny' if args.tiny else ''} on {where}; budget {args.budget_s:.0f} s"
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

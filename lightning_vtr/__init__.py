@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # pragma: no cover
     )
     from lightning_vtr.selection.registry import SELECTORS
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 #: Lazily exported name -> the module that defines it (keep in step with the TYPE_CHECKING imports above).
 _EXPORTS = {

@@ -26,6 +26,7 @@ from PIL import Image
 from lightning_vtr.data.binvox import write_binvox
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_choice, check_float, check_type
 from lightning_vtr.visualize import as_voxel_grid
 
@@ -222,10 +223,10 @@ def export_prediction(
         paths["mesh"]  # Path('predictions/chair/1a2b/prediction.ply')
     """
     directory = Path(directory)
-    paths = {"binvox": export_binvox(directory / f"{name}.binvox", voxels, threshold)}
+    paths = {"binvox": export_binvox(join_under(directory, f"{name}.binvox"), voxels, threshold)}
     if mesh_format is not None:
         check_choice("mesh_format", mesh_format, MESH_FORMATS)
-        paths["mesh"] = export_mesh(directory / f"{name}.{mesh_format}", voxels, threshold)
+        paths["mesh"] = export_mesh(join_under(directory, f"{name}.{mesh_format}"), voxels, threshold)
     if sheet is not None:
         paths["sheet"] = save_png(directory / "sheet.png", sheet)
     return paths
@@ -384,7 +385,7 @@ class VoxelPredictionWriter(BasePredictionWriter):
                     title=entry["name"],
                 )
             entry["files"] = export_prediction(
-                self.output_dir / entry["name"],
+                join_under(self.output_dir, entry["name"]),
                 voxels[i],
                 threshold=self.threshold,
                 mesh_format=self.mesh_format,

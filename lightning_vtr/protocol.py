@@ -7,11 +7,16 @@ the members of :class:`AugmentableDataModule` can serve it; :class:`~lightning_v
 
 Batches (what :class:`~lightning_vtr.data.VTRDataModule` yields) are dictionaries:
 
-* ``"images"``: ``(B, V, 3, H, W)`` float, already transformed (resized, composited on the
+* ``"images"``: ``(B, V, 3, H, W)`` float32, already transformed (resized, composited on the
   background, normalised) by the datamodule.
-* ``"voxels"``: ``(B, R, R, R)`` float in {0, 1}, indexed per :mod:`lightning_vtr.geometry`.
-* ``"viewpoints"``: ``(B, V, 2)`` (yaw, pitch) in degrees of each input image.
+* ``"voxels"``: ``(B, R, R, R)`` float32 in {0, 1}, indexed per :mod:`lightning_vtr.geometry`.
+* ``"viewpoints"``: ``(B, V, 2)`` float32 (yaw, pitch) in degrees of each input image.
 * ``"category"``: list of ``B`` category names; ``"object_id"``: list of ``B`` object ids.
+* ``"view_set"``: list of ``B`` view-set names (``"aligned"``, ...; ``"generated"`` for a sample the callback
+  generated).
+
+:func:`check_model_matches_data` compares a model's declared ``image_size``, ``num_views`` and
+``voxel_resolution`` with the datamodule's; :class:`~lightning_vtr.data.VTRDataModule` calls it in ``setup``.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ __all__ = [
     "AugmentableDataModule",
     "ReconstructionModel",
     "check_augmentable_datamodule",
+    "check_model_matches_data",
     "check_reconstruction_model",
 ]
 
@@ -45,10 +51,17 @@ default binarisation of error volumes, selections, IoU/F-score, exports and figu
 class ReconstructionModel(Protocol):
     """What the callback needs from a multi-view voxel reconstruction model.
 
+    Each attribute states what the model takes or gives; :func:`check_model_matches_data` refuses a datamodule that
+    serves something else, when a Trainer sets the datamodule up.
+
     Attributes:
-        image_size: the square input size ``H = W`` the model expects, in pixels.
-        num_views: the number of input views per sample it is trained with.
-        voxel_resolution: ``R`` of its ``(B, R, R, R)`` output.
+        image_size: the square input size ``H = W`` the model expects, in pixels. Must equal the datamodule's
+            ``image_size`` (the side of the images it serves). Synthesizers built for a model render at it.
+        num_views: the number of input views per sample it is trained with. Must equal the datamodule's
+            ``num_views`` when training (evaluation may serve any number); the callback warns when its selector
+            returns another number of views.
+        voxel_resolution: ``R`` of its ``(B, R, R, R)`` output. Must equal the datamodule's ``voxel_resolution``
+            (the dataset's voxel grids); the callback also checks one prediction's shape at fit start.
 
     Example:
         >>> class Constant:  # no base class needed
@@ -96,6 +109,58 @@ def check_reconstruction_model(model: object) -> None:
         )
 
 
+#: The attributes :func:`check_model_matches_data` compares, with what to change when one disagrees.
+_MATCHED_ATTRIBUTES: dict[str, str] = {
+    "image_size": "the datamodule serves {data} px images: pass image_size={model} to the datamodule, or build the "
+    "model for {data} px",
+    "num_views": "the datamodule serves {data} views per training sample: pass num_views={model} to the datamodule, "
+    "or build the model with num_views={data}",
+    "voxel_resolution": "the dataset's voxel grids are {data}^3: build the model with voxel_resolution={data}, or use "
+    "a dataset built at resolution {model}",
+}
+
+
+def check_model_matches_data(model: object, datamodule: object, *, training: bool = True) -> None:
+    """Raise ``ValueError`` when ``model``'s declared sizes disagree with what ``datamodule`` serves.
+
+    Compares ``image_size``, ``voxel_resolution`` and, when ``training``, ``num_views`` (a model may be evaluated
+    on another number of views). An attribute that either side lacks, or that is ``None``, is not compared: a
+    plain ``LightningModule`` without these attributes passes. Reading the datamodule's attributes may read the
+    dataset (:class:`~lightning_vtr.data.VTRDataModule` takes its ``image_size`` and ``voxel_resolution`` from
+    ``metadata.json``).
+
+    Args:
+        model: the model (normally a :class:`ReconstructionModel`).
+        datamodule: the datamodule (normally a :class:`~lightning_vtr.data.VTRDataModule`).
+        training: also compare ``num_views``.
+
+    Raises:
+        ValueError: one line naming every disagreeing attribute with both values and what to change.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> model = SimpleNamespace(image_size=128, num_views=3, voxel_resolution=32)
+        >>> check_model_matches_data(model, SimpleNamespace(image_size=128, num_views=1), training=False)
+        >>> check_model_matches_data(model, SimpleNamespace(image_size=64, num_views=3))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: SimpleNamespace.image_size is 128 but SimpleNamespace.image_size is 64: the datamodule serves 64 px ...
+    """
+    names = [name for name in _MATCHED_ATTRIBUTES if training or name != "num_views"]
+    mismatches = []
+    for name in names:
+        declared = getattr(model, name, None)
+        served = getattr(datamodule, name, None)
+        if declared is None or served is None or declared == served:
+            continue
+        hint = _MATCHED_ATTRIBUTES[name].format(model=declared, data=served)
+        mismatches.append(
+            f"{type(model).__name__}.{name} is {declared!r} but {type(datamodule).__name__}.{name} is {served!r}: {hint}"
+        )
+    if mismatches:
+        raise ValueError("; ".join(mismatches))
+
+
 @runtime_checkable
 class AugmentableDataModule(Protocol):
     """What :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` reads, writes and calls on a datamodule.
@@ -119,7 +184,10 @@ class AugmentableDataModule(Protocol):
         TypeError: object does not satisfy lightning_vtr.AugmentableDataModule: missing split_records(split), ...
     """
 
-    transform: Callable[..., Any]
+    @property
+    def transform(self) -> Callable[..., Any]:
+        """RGBA uint8 images ``(T, H, W, 4)`` -> model input ``(T, 3, H, W)`` float (the evaluation transform)."""
+        ...
 
     @property
     def generated_samples(self) -> list[dict]:

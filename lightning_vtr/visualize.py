@@ -620,7 +620,7 @@ def object_sheet(
             target[0],
             batch["images"][0],  # (V, 3, H, W) model input
             input_viewpoints=batch["viewpoints"][0],
-            selected_viewpoints=ErrorGuidedSelector().select(predicted[:1], target[:1], ["chair"])[0],
+            selected_viewpoints=ErrorGuidedSelector.paper().select(predicted[:1], target[:1], ["chair"])[0],
             title="chair/0003",
         )
         Image.fromarray(sheet).save("chair_0003.png")
@@ -714,7 +714,7 @@ def log_validation_sheets(
 
     Meant for a model's ``on_validation_epoch_end``, with the first validation batch and its predictions kept
     by ``validation_step``. Only global rank 0 draws and logs; nothing is drawn in the sanity check. The error
-    projection row shows the views ``selector`` (default: the paper's ``ErrorGuidedSelector()``) picks for each
+    projection row shows the views ``selector`` (default: the paper's ``ErrorGuidedSelector.paper()``) picks for each
     object, seeded by the epoch: what the augmentation would synthesize for it next.
 
     Args:
@@ -773,7 +773,7 @@ def log_validation_sheets(
     if selector is None:
         from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 
-        selector = ErrorGuidedSelector()
+        selector = ErrorGuidedSelector.paper()
     generator = torch.Generator().manual_seed(int(trainer.current_epoch))
     selected = selector.select(predicted, target, ["object"] * n, generator=generator)
     normalize = _normalization_of(trainer)

@@ -102,18 +102,35 @@ def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.T
 
 
 def make_callback(**kw: Any) -> ErrorGuidedViewAugmentation:
-    """The augmentation callback with 32-px mesh rendering, 20 % of the objects and no progress bar by default."""
+    """The augmentation callback with 32-px mesh rendering, 20 % of the objects and no progress bar by default.
+
+    ``selector="paper"`` gives :meth:`ErrorGuidedViewAugmentation.paper`; another selector given (an instance or a
+    name) gets the paper's callback settings unless ``kw`` say otherwise: as many objects searched as given views,
+    and a pool keeping every round's sets when the selector uses one (none otherwise). No selector (or ``None``):
+    the callback's defaults, the measured default rule.
+    """
     kw.setdefault("synthesizer", RenderSynthesizer(image_size=32))
     kw.setdefault("fraction", 0.2)
     kw.setdefault("progress_bar", False)
-    return ErrorGuidedViewAugmentation(**kw)
+    selector = kw.pop("selector", None)
+    if selector == "paper":
+        return ErrorGuidedViewAugmentation.paper(**kw)
+    if selector is None:
+        return ErrorGuidedViewAugmentation(**kw)
+    if isinstance(selector, str):
+        from lightning_vtr.selection.registry import make_selector
+
+        selector = make_selector(selector)
+    kw.setdefault("search_fraction", kw["fraction"])
+    kw.setdefault("pool", {"refresh": False} if selector.uses_pool else None)
+    return ErrorGuidedViewAugmentation(selector, **kw)
 
 
 def generated_contents(dm: VTRDataModule) -> list[tuple]:
     """``(epoch, category, object_id, viewpoints rounded to 1e-4, image bytes)`` of every generated sample."""
     out = []
     for s in dm.generated_samples:
-        images = [np.asarray(Image.open(dm.generated_dir / s["dir"] / n)) for n in s["images"]]
+        images = [np.asarray(Image.open(Path(s["root"]) / s["dir"] / n)) for n in s["images"]]
         viewpoints = np.round(s["viewpoints"], 4).tolist()
         out.append((s["epoch"], s["category"], s["object_id"], viewpoints, np.stack(images).tobytes()))
     return out

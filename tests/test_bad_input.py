@@ -114,12 +114,12 @@ def test_a_nan_viewpoint_names_the_argument_and_row_in_the_renderer_and_synthesi
 
 # ------------------------------------------------------------------------------------ lightning-vtr predict
 def test_predict_refuses_an_empty_image_folder_before_loading_the_model(tmp_path, capsys, monkeypatch):
-    import lightning_vtr.cli.predict as predict_module
+    import lightning_vtr.models.registry as registry  # predict imports load_model from it when it runs
 
     def load_model(*args, **kwargs):
         raise AssertionError("the model was loaded before the image folders were checked")
 
-    monkeypatch.setattr(predict_module, "load_model", load_model)
+    monkeypatch.setattr(registry, "load_model", load_model)
     good, empty, out = tmp_path / "chair", tmp_path / "empty", tmp_path / "out"
     good.mkdir()
     empty.mkdir()

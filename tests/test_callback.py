@@ -61,8 +61,8 @@ def test_init_rejects_wrong_types(kwargs, message):
 def test_init_messages_name_the_argument_and_value():
     with pytest.raises(ValueError, match=re.escape("`fraction` must be a number in (0, 1], got 1.5")):
         ErrorGuidedViewAugmentation(fraction=1.5)
-    with pytest.raises(ValueError, match=re.escape("`pool_capacity` must be an int >= 1, got 0")):
-        ErrorGuidedViewAugmentation(pool_capacity=0)
+    with pytest.raises(ValueError, match=re.escape("`capacity` must be an int >= 1, got 0")):
+        ErrorGuidedViewAugmentation(pool={"capacity": 0})
     names = ", ".join(repr(name) for name in [*SELECTORS, "paper"])
     with pytest.raises(ValueError, match=re.escape(f"`selector` must be one of {names}, got 'error'")):
         ErrorGuidedViewAugmentation(selector="error")
@@ -70,12 +70,13 @@ def test_init_messages_name_the_argument_and_value():
 
 @pytest.mark.parametrize("name", sorted(SELECTORS))
 def test_selector_by_registry_name(name):
-    # what a YAML config gives: `selector: random`
-    callback = ErrorGuidedViewAugmentation(selector=name, progress_bar=False)
+    # what a YAML config gives: `selector: random` (with `pool: null` for a selector that uses no pool)
+    pool = ErrorGuidedViewAugmentation().pool if SELECTORS[name].uses_pool else None
+    callback = ErrorGuidedViewAugmentation(selector=name, pool=None if pool is None else {"refresh": True})
     assert type(callback.selector) is SELECTORS[name]
     assert (callback.pool is not None) == SELECTORS[name].uses_pool == (name == "error_guided")
-    # a selector named gets the paper's callback settings: search as many as get views, keep every selection
-    assert (callback.search_fraction, callback.pool_refresh) == (0.05, False)
+    # a selector named keeps the callback's own defaults: they never depend on the selector
+    assert (callback.fraction, callback.search_fraction) == (0.05, 0.35)
 
 
 def _settings(callback: ErrorGuidedViewAugmentation) -> dict:
@@ -84,15 +85,15 @@ def _settings(callback: ErrorGuidedViewAugmentation) -> dict:
     pool = callback.pool
     return {
         "selector": type(selector).__name__,
-        "score": getattr(selector, "score", None),
+        "score": selector.settings().get("score"),
         "min_separation": getattr(selector, "min_separation", None),
         "temperature": getattr(selector, "temperature", None),
         "k": getattr(selector, "k", None),
         "num_views": selector.num_views,
         "fraction": callback.fraction,
         "search_fraction": callback.search_fraction,
-        "pool_refresh": callback.pool_refresh,
-        "use_pool": callback.use_pool,
+        "pool_refresh": None if pool is None else pool.refresh,
+        "use_pool": pool is not None,
         "pool_capacity": None if pool is None else pool.capacity,
         "pool_prefer_others": None if pool is None else pool.prefer_others,
         "select_at_start": callback.select_at_start,
@@ -114,41 +115,43 @@ PAPER = {
     "pool_prefer_others": True,
     "select_at_start": True,
 }
+DEFAULT = {**PAPER, "score": "visible", "min_separation": 30.0, "temperature": 10.0, "search_fraction": 0.35}
+DEFAULT["pool_refresh"] = True
 
 
 def test_the_default_is_the_tempered_side_aware_rule_with_the_released_search():
-    assert _settings(ErrorGuidedViewAugmentation()) == {
-        **PAPER,
-        "score": "visible",
-        "min_separation": 30.0,
-        "temperature": 10.0,
-        "search_fraction": 0.35,
-        "pool_refresh": True,
-    }
-    # each setting can still be turned off; the search is never below the share given views
-    off = ErrorGuidedViewAugmentation(search_fraction=0.05, pool_refresh=False)
-    assert (off.search_fraction, off.pool_refresh, off.selector.temperature) == (0.05, False, 10.0)
-    assert ErrorGuidedViewAugmentation(fraction=0.5).search_fraction == 0.5
+    assert _settings(ErrorGuidedViewAugmentation()) == DEFAULT == _settings(ErrorGuidedViewAugmentation.default())
+    # each setting can be turned off on its own
+    off = ErrorGuidedViewAugmentation(search_fraction=0.05, pool={"refresh": False})
+    assert (off.search_fraction, off.pool.refresh, off.selector.temperature) == (0.05, False, 10.0)
+    # the search never falls below the share given views: said, not silently raised
+    with pytest.raises(ValueError, match=re.escape("`search_fraction` must be >= `fraction` (0.5)")):
+        ErrorGuidedViewAugmentation(fraction=0.5)
+    with pytest.raises(TypeError, match="takes no `selector`"):
+        ErrorGuidedViewAugmentation.default(selector="random")
 
 
-def test_the_papers_rule_is_one_argument_away():
+def test_the_papers_rule_is_one_preset_away():
     assert _settings(ErrorGuidedViewAugmentation.paper()) == PAPER
-    assert _settings(ErrorGuidedViewAugmentation(selector="paper")) == PAPER
-    # what the default was before it became the tempered rule
-    assert _settings(ErrorGuidedViewAugmentation(selector=ErrorGuidedSelector())) == PAPER
-    tuned = ErrorGuidedViewAugmentation.paper(fraction=0.1, seed=3, pool_capacity=5)
+    tuned = ErrorGuidedViewAugmentation.paper(fraction=0.1, seed=3, pool={"capacity": 5})
     assert _settings(tuned) == {**PAPER, "fraction": 0.1, "search_fraction": 0.1, "pool_capacity": 5}
     assert tuned.seed == 3
     with pytest.raises(TypeError, match="takes no `selector`"):
         ErrorGuidedViewAugmentation.paper(selector="random")
 
 
-def test_a_selector_given_gets_the_papers_callback_settings():
-    # the default's search and refresh come with the default selector only
-    given = ErrorGuidedViewAugmentation(ErrorGuidedSelector(score="visible", min_separation=30.0, temperature=10.0))
-    assert (given.search_fraction, given.pool_refresh) == (0.05, False)
-    random = ErrorGuidedViewAugmentation(RandomSelector(mode="area"), fraction=0.1)
-    assert (random.search_fraction, random.pool_refresh, random.pool) == (0.1, False, None)
+def test_a_selector_given_keeps_the_callbacks_constant_defaults():
+    # the defaults are the same whatever the selector: the paper's selector alone is not the paper's rule
+    given = ErrorGuidedViewAugmentation(ErrorGuidedSelector.paper())
+    assert (given.search_fraction, given.pool.refresh) == (0.35, True)
+    assert _settings(given) == {**DEFAULT, "score": "paper", "min_separation": None, "temperature": None}
+    random = ErrorGuidedViewAugmentation(RandomSelector(), fraction=0.1, search_fraction=0.1, pool=None)
+    assert (random.search_fraction, random.pool) == (0.1, None)
+    # a selector that uses no pool has none: the default pool is ignored for it, an explicit one refused
+    assert ErrorGuidedViewAugmentation(RandomSelector()).pool is None
+    assert "pool=None" in repr(ErrorGuidedViewAugmentation(RandomSelector()))
+    with pytest.raises(ValueError, match=re.escape("`pool` must be None with RandomSelector")):
+        ErrorGuidedViewAugmentation(RandomSelector(), pool={"capacity": 4})
 
 
 def test_setup_refuses_without_dataloader_reload(tiny_dataset, tmp_path):
@@ -390,7 +393,7 @@ def _pool_keys(callback) -> list[str]:
 
 def test_pool_refresh_keeps_only_the_latest_selection(tiny_dataset, tmp_path):
     dm = make_datamodule(tiny_dataset, tmp_path)
-    callback = make_callback(selector="paper", fraction=0.2, pool_refresh=True)
+    callback = make_callback(selector="paper", fraction=0.2, pool={"refresh": True})
     make_trainer(tmp_path, 3, [callback]).fit(EmptyPredictionModel(), datamodule=dm)
     assert len(dm.generated_samples) == 12  # three selections of 4
     assert len(callback.pool) == 4  # only the last selection's sets
@@ -399,7 +402,7 @@ def test_pool_refresh_keeps_only_the_latest_selection(tiny_dataset, tmp_path):
 
 
 def test_callback_rejects_a_search_fraction_below_fraction():
-    with pytest.raises(ValueError, match=r"`search_fraction` must be a number in \[0.2, 1\], got 0.1"):
+    with pytest.raises(ValueError, match=r"`search_fraction` must be >= `fraction` \(0.2\).*got 0.1"):
         ErrorGuidedViewAugmentation(fraction=0.2, search_fraction=0.1)
     with pytest.raises(ValueError, match="`generate_for` must be one of 'random', 'error', got 'worst'"):
         ErrorGuidedViewAugmentation(generate_for="worst")

@@ -14,8 +14,10 @@ import torch
 from helpers import TinyUserModel, make_callback, make_datamodule, make_trainer
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
 
+import lightning_vtr.augmentation.distributed as distributed_module
 import lightning_vtr.callback as callback_module
-from lightning_vtr.callback import RECORD_VERSION, ErrorGuidedViewAugmentation, _all_gather, _reload_train_dataloader
+from lightning_vtr.augmentation.distributed import all_gather_objects, sharded_map
+from lightning_vtr.callback import RECORD_VERSION, _reload_train_dataloader
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.selection import ErrorGuidedSelector, RandomSelector
@@ -43,8 +45,8 @@ def test_setup_names_the_missing_datamodule_member(tiny_dataset, tmp_path):
 def test_the_callback_binarises_at_the_selectors_threshold():
     record = SimpleNamespace(category="chair", object_id="a")
     predicted, target, views = torch.full((4, 4, 4), 0.35), torch.ones(4, 4, 4), torch.zeros(3, 2)
-    at_03 = make_callback(selector=ErrorGuidedSelector(threshold=0.3))._selected(record, 0, views, predicted, target)
-    at_default = make_callback()._selected(record, 0, views, predicted, target)
+    at_03 = make_callback(selector=ErrorGuidedSelector(threshold=0.3))._selection(record, 0, views, predicted, target)
+    at_default = make_callback()._selection(record, 0, views, predicted, target)
     assert at_03.error == 0.0  # 0.35 >= 0.3: every voxel right
     assert at_default.error == 1.0  # 0.35 < 0.4: every voxel wrong
     # selectors that do not binarise measure at the package default
@@ -61,9 +63,22 @@ def test_collectives_go_through_the_trainers_strategy():
             return obj if obj is not None else f"rank {src}"
 
     trainer = SimpleNamespace(world_size=3, global_rank=1, strategy=Strategy())
-    assert _all_gather(trainer, "mine") == ["rank 0", "mine", "rank 2"]
+    assert all_gather_objects(trainer, "mine") == ["rank 0", "mine", "rank 2"]
     assert calls == [(None, 0), ("mine", 1), (None, 2)]
-    assert "torch.distributed" not in inspect.getsource(callback_module)
+    for module in (callback_module, distributed_module):
+        assert "torch.distributed" not in inspect.getsource(module)
+
+
+def test_sharded_map_gives_every_rank_the_results_in_item_order():
+    # rank 1 of 3 works on items 1 and 4; the other ranks' parts come through the strategy
+    parts = {0: [0, 30], 2: [20]}
+
+    class Strategy:
+        def broadcast(self, obj, src=0):
+            return obj if src == 1 else parts[src]
+
+    trainer = SimpleNamespace(world_size=3, global_rank=1, strategy=Strategy())
+    assert sharded_map(trainer, [0, 1, 2, 3, 4], lambda mine: [10 * i for i in mine]) == [0, 10, 20, 30, 40]
 
 
 # ---------------------------------------------------------------------------------------- the private attribute
@@ -139,18 +154,37 @@ def test_resume_with_another_seed_restores_the_state_and_warns(tiny_dataset, one
     assert resumed_dm.generated_samples == dm.generated_samples
 
 
-def test_a_checkpoint_keyed_with_the_seed_still_loads(tiny_dataset, one_epoch, tmp_path):
+def test_resume_with_another_rule_warns_naming_both_and_starts_fresh(tiny_dataset, one_epoch, tmp_path):
+    run_dir, _, callback = one_epoch
+    ckpt = str(run_dir / "ckpt" / "last.ckpt")
+    dm = make_datamodule(tiny_dataset, run_dir)
+    other = make_callback(fraction=0.15, seed=0, max_samples=2)  # the default rule, same selector class: same key
+    assert other.state_key == callback.state_key
+    with pytest.warns(UserWarning, match="belongs to the rule") as caught:
+        make_trainer(tmp_path, 2, [other]).fit(TinyUserModel(), datamodule=dm, ckpt_path=ckpt)
+    message = next(str(w.message) for w in caught if "belongs to the rule" in str(w.message))
+    assert "ErrorGuidedSelector(" in message and "score" in message
+    assert "search_fraction (0.15 in the checkpoint, 0.35 now)" in message
+    assert "'refresh': False" in message and "Starting this callback's state fresh" in message
+    # nothing of the paper rule's state was loaded: the pool and history hold only the caught-up round of epoch 0
+    assert [h["epoch"] for h in other.history] == [0] and callback.history[0]["epoch"] == -1
+    assert len(other.pool) == round(0.35 * 21)
+
+
+def test_a_checkpoint_of_0_3_resumes_and_a_newer_state_is_refused(tiny_dataset, one_epoch, tmp_path):
     run_dir, _, callback = one_epoch
     checkpoint = torch.load(run_dir / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
-    old_key = "ErrorGuidedViewAugmentation{'selector': 'ErrorGuidedSelector', 'seed': 0}"
-    checkpoint["callbacks"][old_key] = checkpoint["callbacks"].pop(_NEW_KEY)
-    old = tmp_path / "old.ckpt"
-    torch.save(checkpoint, old)
-    _, resumed = _fit(tiny_dataset, tmp_path, 1, seed=0, ckpt=str(old), samples_of=run_dir)
+    state = checkpoint["callbacks"][_NEW_KEY]
+    assert state["version"] == 2 and state["rule"] == callback.rule()
+    # 0.3 wrote version 1 under the same key, without the rule
+    old = {k: v for k, v in state.items() if k != "rule"} | {"version": 1}
+    checkpoint["callbacks"][_NEW_KEY] = old
+    path = tmp_path / "v03.ckpt"
+    torch.save(checkpoint, path)
+    _, resumed = _fit(tiny_dataset, tmp_path, 1, seed=0, ckpt=str(path), samples_of=run_dir)
     _same_state(resumed, callback)
-    # a key of another selector is not this callback's state
-    fresh = make_callback(selector=RandomSelector())
-    assert fresh._seeded_state_key(checkpoint["callbacks"]) is None
+    with pytest.raises(ValueError, match=r"state has version 3; this lightning_vtr reads versions <= 2"):
+        make_callback(selector="paper").load_state_dict(state | {"version": 3})
 
 
 def test_selection_records_have_the_documented_fields(one_epoch):
@@ -163,4 +197,3 @@ def test_selection_records_have_the_documented_fields(one_epoch):
     assert all(len(v) == 3 and len(v[0]) == 2 for v in record["selected"] + record["view_sets"])
     docs = (Path(__file__).parents[1] / "docs" / "records.md").read_text()
     assert all(f"`{field}`" in docs for field in record)
-    assert all(f"``{field}``" in ErrorGuidedViewAugmentation.__doc__ for field in record)

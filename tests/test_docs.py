@@ -85,3 +85,35 @@ def test_the_changelogs_links_into_the_docs_resolve_in_the_repository_and_on_the
     rendered = hook.on_page_markdown(source, page, {"docs_dir": str(DOCS)}, None)
     assert "](docs/" not in rendered and "--8<--" not in rendered
     assert f"]({links[0][0].removeprefix('docs/')}" in rendered
+
+
+def test_the_nav_puts_user_docs_first_and_names_each_entry_once():
+    top = [next(iter(entry)) for entry in _config()["nav"]]
+    assert top[:6] == ["Home", "Getting started", "Guides", "Command line", "API reference", "Evidence"], top
+
+    def check(entries, parent):
+        titles = [title for entry in entries for title in entry]
+        assert all(isinstance(entry, dict) for entry in entries), f"an untitled entry under {parent!r}: {entries}"
+        repeated = sorted({title for title in titles if titles.count(title) > 1} | ({parent} & set(titles)))
+        assert not repeated, f"mkdocs.yml's nav repeats {repeated} under {parent!r}"
+        for entry in entries:
+            for title, value in entry.items():
+                if isinstance(value, list):
+                    check(value, title)
+
+    check(_config()["nav"], "lightning_vtr")
+
+
+def test_every_page_has_one_title():
+    for path in sorted(DOCS.rglob("*.md")):
+        if path.name == "changelog.md":
+            continue  # the page is CHANGELOG.md, included by the docs hook
+        prose = re.sub(r"^\s*```.*?^\s*```", "", path.read_text(encoding="utf-8"), flags=re.M | re.S)
+        titles = re.findall(r"^# .+$", prose, flags=re.M)
+        assert len(titles) == 1, f"{path.relative_to(ROOT)} has {len(titles)} H1 titles: {titles}"
+
+
+def test_the_site_names_no_temporary_folder():
+    for path in sorted(DOCS.rglob("*.md")):
+        text = path.read_text(encoding="utf-8")
+        assert "/tmp/" not in text, f"{path.relative_to(ROOT)} names a temporary folder (/tmp/)"

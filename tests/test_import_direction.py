@@ -18,6 +18,7 @@ PACKAGE_DIR = Path(lightning_vtr.__file__).parent
 #: The reusable layer: modules and packages a Lightning user imports without the experiments or the CLI.
 PLUGIN_LAYER = (
     "callback",
+    "augmentation",
     "protocol",
     "geometry",
     "renderer",

@@ -84,8 +84,8 @@ def test_the_selection_checks_every_prediction(tiny_dataset, tmp_path):
 
 
 def test_a_resolution_mismatch_is_refused_before_training(tiny_dataset, tmp_path):
+    # declares the dataset's 32 (a declared 16 fails earlier, at the datamodule's setup) but returns 16^3
     model = FixedOutputModel(torch.full((16, 16, 16), 0.5))
-    model.voxel_resolution = 16
     trainer = make_trainer(tmp_path, 2, [make_callback(fraction=0.1)])
     dm = make_datamodule(tiny_dataset, tmp_path)
     dm.setup("fit")

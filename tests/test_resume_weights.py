@@ -10,6 +10,11 @@ from helpers import assert_same_training_state, fit_pix2vox, one_thread
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 
 
+def _placed(entries: list[dict]) -> list[dict]:
+    """The index entries without the folder they were written to."""
+    return [{k: v for k, v in e.items() if k != "root"} for e in entries]
+
+
 @pytest.mark.slow
 def test_resume_restores_weights_and_optimizer_state(tiny_dataset, pix2vox_run_4_epochs, tmp_path):
     full, _ = pix2vox_run_4_epochs  # fit_pix2vox(tiny_dataset, ..., epochs=4), shared with the kill test
@@ -25,6 +30,8 @@ def test_resume_restores_weights_and_optimizer_state(tiny_dataset, pix2vox_run_4
 
     # the resumed run trained on what the uninterrupted one did: the same generated samples, epoch by epoch
     assert [s["epoch"] for s in resumed.datamodule.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3 + [2] * 3
-    assert resumed.datamodule.generated_samples == full.datamodule.generated_samples
+    # (each entry's "root" names the folder its run wrote it to: the two runs write to their own)
+    assert _placed(resumed.datamodule.generated_samples) == _placed(full.datamodule.generated_samples)
+    assert {s["root"] for s in resumed.datamodule.generated_samples} == {str((tmp_path / "part" / "gen").absolute())}
     assert resumed.global_step == full.global_step == 4 * 2
     assert_same_training_state(resumed, full)

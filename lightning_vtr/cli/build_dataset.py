@@ -7,9 +7,7 @@ from pathlib import Path
 
 from lightning_vtr.cli.arguments import comma_separated, positive_int, ratios, shard
 
-__all__ = ["HELP", "add_arguments", "run"]
-
-HELP = "build a ShapeNet-VTR dataset (procedural, ShapeNetCore or a mesh folder)"
+__all__ = ["PROTOCOLS", "SOURCE_LAYOUTS", "add_arguments", "run"]
 
 
 def _pitch_range(text: str) -> tuple[float, float]:
@@ -25,8 +23,13 @@ def _pitch_range(text: str) -> tuple[float, float]:
     return low, high
 
 
+#: ``--protocol`` / ``--layout`` choices: :data:`lightning_vtr.data.builder.PROTOCOLS` and ``SOURCE_LAYOUTS``,
+#: written out so that ``--help`` imports no torch or trimesh (a test keeps them equal).
+PROTOCOLS: tuple[str, ...] = ("vtr", "pix3d")
+SOURCE_LAYOUTS: tuple[str, ...] = ("auto", "shapenet_v1", "shapenet_v2", "generic")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from lightning_vtr.data.builder import PROTOCOLS, SOURCE_LAYOUTS
     from lightning_vtr.data.format import UP_AXES
 
     parser.description = (
@@ -74,7 +77,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="--protocol pix3d: low,high pitch in degrees (default 0,40; write --pitch-range=-10,30 for a negative low); "
         "yaw is uniform",
     )
-    add("--split", type=ratios, default=(0.7, 0.1, 0.2), help="train,val,test ratios (default 0.7,0.1,0.2)")
+    add(
+        "--split",
+        type=ratios,
+        default=(0.7, 0.1, 0.2),
+        help="train,val,test ratios (default 0.7,0.1,0.2); a category of >= 3 objects gets >= 1 val and >= 1 test "
+        "object, a smaller one warns",
+    )
     add("--seed", type=int, default=None, help="seed of shapes, view sets and split (default 0)")
     add("--workers", type=positive_int, default=1, help="parallel build processes (default 1)")
     add("--shard", type=shard, default=(0, 1), help="build shard i of n (0-based), e.g. 3/16")

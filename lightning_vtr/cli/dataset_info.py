@@ -8,9 +8,8 @@ from pathlib import Path
 
 from lightning_vtr.cli.arguments import positive_int
 
-__all__ = ["EXIT_PROBLEMS", "HELP", "add_arguments", "run"]
+__all__ = ["EXIT_PROBLEMS", "add_arguments", "run"]
 
-HELP = "summarise a ShapeNet-VTR dataset (--verify: read every file and list problems)"
 
 #: The exit status of ``--verify`` when it finds problems (2 stays for errors a user can fix, e.g. a bad path).
 EXIT_PROBLEMS = 1

@@ -18,24 +18,82 @@ import re
 import shlex
 import sys
 from collections.abc import Callable, Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
-from lightning_vtr.cli import build_dataset, dataset_info, pix3d, predict, report, robustness
-from lightning_vtr.cli.lightning import LIGHTNING_SUBCOMMANDS, run_lightning_cli
 from lightning_vtr.errors import EXPECTED_ERRORS, UsageError, exit_status, one_line
 from lightning_vtr.utils.memory import retain_freed_memory
 
-__all__ = ["COMMANDS", "build_parser", "goes_to_lightning", "main"]
+__all__ = ["COMMANDS", "LIGHTNING_COMMANDS", "Command", "build_parser", "goes_to_lightning", "main"]
 
-#: name -> (help, add_arguments(parser), run(args) -> exit status).
-COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
-    "build-dataset": (build_dataset.HELP, build_dataset.add_arguments, build_dataset.run),
-    "dataset-info": (dataset_info.HELP, dataset_info.add_arguments, dataset_info.run),
-    "report": (report.HELP, report.add_arguments, report.run),
-    "predict": (predict.HELP, predict.add_arguments, predict.run),
-    "pix3d": (pix3d.HELP, pix3d.add_arguments, pix3d.run),
-    "evaluate-folder": (pix3d.FOLDER_HELP, pix3d.add_folder_arguments, pix3d.run_folder),
-    "robustness": (robustness.HELP, robustness.add_arguments, robustness.run),
+#: The ``LightningCLI`` sub-commands (as :data:`lightning_vtr.cli.lightning.LIGHTNING_SUBCOMMANDS`, kept here so
+#: that ``lightning-vtr --help`` imports no Lightning), with their help lines.
+LIGHTNING_COMMANDS: dict[str, str] = {
+    "fit": "train any LightningModule with predict_voxels (LightningCLI: --config, --model module.Class, ...)",
+    "validate": "validate a model on the validation split (LightningCLI: --config, --ckpt_path, ...)",
+    "test": "test a model on every view set's test split (LightningCLI: --config, --ckpt_path, ...)",
+}
+LIGHTNING_SUBCOMMANDS = (*LIGHTNING_COMMANDS, "predict")
+
+
+class Command:
+    """A sub-command: its help line and the module (imported only when the command runs or shows its help)
+    holding ``add_arguments(parser)`` and ``run(args) -> exit status``.
+
+    Args:
+        help: the one-line help of ``lightning-vtr --help``.
+        module: the module's import path.
+        add: the name of its ``add_arguments`` function.
+        run: the name of its ``run`` function.
+    """
+
+    def __init__(self, help: str, module: str, add: str = "add_arguments", run: str = "run") -> None:
+        self.help, self.module, self._add, self._run = help, module, add, run
+
+    def _function(self, name: str) -> Callable[..., Any]:
+        import importlib
+
+        return getattr(importlib.import_module(self.module), name)
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        """Add the command's options to ``parser`` (imports its module)."""
+        self._function(self._add)(parser)
+
+    def run(self, args: argparse.Namespace) -> int:
+        """Run the command on parsed arguments; returns the exit status."""
+        return int(self._function(self._run)(args))
+
+
+#: name -> :class:`Command`, in the order of ``lightning-vtr --help``.
+COMMANDS: dict[str, Command] = {
+    "build-dataset": Command(
+        "build a ShapeNet-VTR dataset (procedural, ShapeNetCore or a mesh folder)", "lightning_vtr.cli.build_dataset"
+    ),
+    "dataset-info": Command(
+        "summarise a ShapeNet-VTR dataset (--verify: read every file and list problems)",
+        "lightning_vtr.cli.dataset_info",
+    ),
+    "report": Command(
+        "compare view strategies (yours too) over seeds for any model; write Table 1 with CIs, paired differences",
+        "lightning_vtr.cli.report",
+    ),
+    "predict": Command(
+        "run a trained model on image folders or a dataset split; write binvox, meshes, sheets and index.html",
+        "lightning_vtr.cli.predict",
+    ),
+    "pix3d": Command(
+        "evaluate checkpoints on Pix3D photographs; write the paper's Table 5 (mIoU, F-score) as markdown and CSV",
+        "lightning_vtr.cli.pix3d",
+    ),
+    "evaluate-folder": Command(
+        "evaluate checkpoints on a folder test set (<set>/<taxonomy>/<model>/NN.png + ShapeNetVox32)",
+        "lightning_vtr.cli.pix3d",
+        "add_folder_arguments",
+        "run_folder",
+    ),
+    "robustness": Command(
+        "measure checkpoints' IoU around every viewpoint bin; write bins.csv, equal-area maps and index.html",
+        "lightning_vtr.cli.robustness",
+    ),
 }
 #: A word that only a LightningCLI command line has: a config, its own options, or a dotted class argument.
 _LIGHTNING_WORD = re.compile(
@@ -69,8 +127,12 @@ class _Parser(argparse.ArgumentParser):
         raise _ParseError(self.prog, message)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The parser of every sub-command of :data:`COMMANDS` (not of the LightningCLI ones).
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of the sub-commands of :data:`COMMANDS`; the LightningCLI ones are listed in its help (and
+    accepted as choices) but go to :func:`~lightning_vtr.cli.lightning.run_lightning_cli` before it parses.
+
+    Args:
+        only: the one command whose options are added (its module is imported); ``None``: every command's.
 
     Its errors (an unknown option, a value a type check rejects, a missing required option) raise
     :class:`~lightning_vtr.errors.UsageError` rather than exiting; ``--help`` still prints and exits.
@@ -80,14 +142,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.epilog = (
         f"Training and testing: `lightning-vtr {'|'.join(LIGHTNING_SUBCOMMANDS)} --config CONFIG.yaml` "
-        "(LightningCLI; --help there). `lightning-vtr predict --ckpt CKPT ...` is the package's own command."
+        "(LightningCLI; --help there). `lightning-vtr predict --ckpt CKPT ...` is the package's own command. "
+        "A model of your own: --model module.Class (run from the folder holding module.py)."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (help_text, add_arguments, run) in COMMANDS.items():
-        command = sub.add_parser(name, help=help_text)
-        add_arguments(command)
-        command.set_defaults(run=run)
+    for name, help_text in LIGHTNING_COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    for name, command in COMMANDS.items():
+        subparser = sub.add_parser(name, help=command.help)
+        if only is None or only == name:
+            command.add_arguments(subparser)
+        subparser.set_defaults(run=command.run)
     return parser
+
+
+def _command_word(words: Sequence[str]) -> str | None:
+    """The first word that is not an option: the command ``build_parser`` needs the options of."""
+    return next((word for word in words if not word.startswith("-")), None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -95,10 +166,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     retain_freed_memory()  # this process trains: freed CPU memory is reused, not faulted in again every step
     if goes_to_lightning(words):
+        from lightning_vtr.cli.lightning import run_lightning_cli
+
         command, run = words[0], lambda: run_lightning_cli(None if argv is None else words)
     else:
         try:
-            args = build_parser().parse_args(words)
+            word = _command_word(words)
+            args = build_parser(word if word in COMMANDS else "").parse_args(words)
         except _ParseError as err:
             print(f"{err.prog}: error: {one_line(err)}", file=sys.stderr)
             return exit_status(err)

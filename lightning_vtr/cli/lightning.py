@@ -1,6 +1,11 @@
 """``lightning-vtr fit|validate|test|predict``: config-driven runs through Lightning's ``LightningCLI``.
 
-Any :class:`~lightning_vtr.models.base.VoxelReconstructionModule` subclass is a valid ``model``;
+Any ``LightningModule`` with the members of :class:`~lightning_vtr.protocol.ReconstructionModel`
+(``predict_voxels``, ``image_size``, ``num_views``, ``voxel_resolution``) is a valid ``model`` (for ``fit``, with
+its own ``training_step`` and ``configure_optimizers``), named ``--model module.Class`` with the working folder
+importable (as under ``python -m``); the package's models are
+:class:`~lightning_vtr.models.base.VoxelReconstructionModule` subclasses. The checkpoints record the model's class
+path, so ``lightning-vtr predict --ckpt`` and ``robustness`` load them without ``--model``;
 the data is :class:`~lightning_vtr.data.VTRDataModule`; the augmentation callback and its selector and
 synthesizer are configured under ``trainer.callbacks`` (see ``configs/``)::
 
@@ -20,35 +25,59 @@ files, meshes, sheets and ``index.html``.
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Sequence
 from types import MethodType
 from typing import Any
 
+import lightning as L
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities.model_helpers import is_overridden
 
 from lightning_vtr.data.datamodule import VTRDataModule
-from lightning_vtr.models.base import VoxelReconstructionModule
+from lightning_vtr.models.registry import CLASS_PATH_KEY
 
-__all__ = ["LIGHTNING_SUBCOMMANDS", "TRAINER_DEFAULTS", "VTRLightningCLI", "run_lightning_cli"]
+__all__ = [
+    "HIDDEN_OPTIONS",
+    "LIGHTNING_SUBCOMMANDS",
+    "TRAINER_DEFAULTS",
+    "RecordModelClass",
+    "VTRLightningCLI",
+    "run_lightning_cli",
+]
 
 #: The ``LightningCLI`` sub-commands ``lightning-vtr`` passes on.
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 #: Trainer defaults of :class:`VTRLightningCLI`: the callback's samples reach the next epoch's loader only
 #: when the dataloaders are rebuilt every epoch.
 TRAINER_DEFAULTS: dict[str, Any] = {"reload_dataloaders_every_n_epochs": 1}
+#: Options of the classes' signatures that ``--help`` does not show: removed arguments still accepted as ``None``.
+HIDDEN_OPTIONS = ("data.max_generated", "data.init_args.max_generated")
+
+
+class RecordModelClass(L.Callback):
+    """Records the model's class path in every checkpoint (under
+    :data:`~lightning_vtr.models.registry.CLASS_PATH_KEY`), so that
+    :func:`~lightning_vtr.models.registry.load_model` finds the class without ``--model``. A class defined in a
+    script run as ``__main__`` is not recorded (it cannot be imported back)."""
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        cls = type(pl_module)
+        if cls.__module__ != "__main__":
+            checkpoint[CLASS_PATH_KEY] = f"{cls.__module__}.{cls.__qualname__}"
 
 
 class VTRLightningCLI(LightningCLI):
     """``LightningCLI`` with the package's defaults.
 
-    Compared with ``LightningCLI()``: the model is any
-    :class:`~lightning_vtr.models.base.VoxelReconstructionModule` subclass (``subclass_mode_model``),
-    the data :class:`~lightning_vtr.data.VTRDataModule`, the Trainer reloads its dataloaders every epoch
-    (:data:`TRAINER_DEFAULTS`, which the callback needs), a re-run overwrites the saved ``config.yaml``,
-    and the models' own ``configure_optimizers`` is kept (``auto_configure_optimizers=False``). Every
-    argument of ``LightningCLI`` can still be given; ``trainer_defaults`` and ``save_config_kwargs``
-    are merged over these defaults.
+    Compared with ``LightningCLI()``: the model is any ``LightningModule`` subclass (``subclass_mode_model``)
+    that satisfies :class:`~lightning_vtr.protocol.ReconstructionModel` (checked once it is built; for ``fit``
+    also its own ``training_step`` and ``configure_optimizers``), the data :class:`~lightning_vtr.data.VTRDataModule`,
+    the Trainer reloads its dataloaders every epoch (:data:`TRAINER_DEFAULTS`, which the callback needs) and
+    records the model's class path in its checkpoints (:class:`RecordModelClass`), a re-run overwrites the saved
+    ``config.yaml``, and the models' own ``configure_optimizers`` is kept (``auto_configure_optimizers=False``).
+    Every argument of ``LightningCLI`` can still be given; ``trainer_defaults`` and ``save_config_kwargs`` are
+    merged over these defaults.
 
     Example::
 
@@ -60,7 +89,7 @@ class VTRLightningCLI(LightningCLI):
 
     def __init__(
         self,
-        model_class: Any = VoxelReconstructionModule,
+        model_class: Any = L.LightningModule,
         datamodule_class: Any = VTRDataModule,
         *,
         subclass_mode_model: bool = True,
@@ -73,17 +102,40 @@ class VTRLightningCLI(LightningCLI):
             model_class,
             datamodule_class,
             subclass_mode_model=subclass_mode_model,
-            trainer_defaults={**TRAINER_DEFAULTS, **(trainer_defaults or {})},
+            trainer_defaults=_with_recorder({**TRAINER_DEFAULTS, **(trainer_defaults or {})}),
             save_config_kwargs={"overwrite": True, **(save_config_kwargs or {})},
             auto_configure_optimizers=auto_configure_optimizers,
             **kwargs,
         )
+
+    def _add_arguments(self, parser: Any) -> None:
+        super()._add_arguments(parser)
+        for action in parser._actions:  # removed options: accepted as before, not advertised
+            if action.dest in HIDDEN_OPTIONS:
+                action.help = argparse.SUPPRESS
+
+    def instantiate_classes(self) -> None:
+        """Build the classes, then refuse a model without the protocol's members (one line naming them)."""
+        super().instantiate_classes()
+        from lightning_vtr.models.registry import check_model, check_model_class
+
+        check_model_class(type(self.model), "--model", training=self.subcommand == "fit")
+        check_model(self.model)
 
     def before_predict(self) -> None:
         """Give a datamodule without ``predict_dataloader`` one: its test loaders (every view set's test split)."""
         dm = getattr(self, "datamodule", None)
         if dm is not None and not is_overridden("predict_dataloader", dm) and hasattr(dm, "test_dataloader"):
             dm.predict_dataloader = MethodType(_test_loaders, dm)
+
+
+def _with_recorder(defaults: dict[str, Any]) -> dict[str, Any]:
+    """``defaults`` with a :class:`RecordModelClass` among its ``callbacks``."""
+    callbacks = defaults.get("callbacks") or []
+    callbacks = list(callbacks) if isinstance(callbacks, (list, tuple)) else [callbacks]
+    if not any(isinstance(c, RecordModelClass) for c in callbacks):
+        callbacks.append(RecordModelClass())
+    return {**defaults, "callbacks": callbacks}
 
 
 def _test_loaders(datamodule: Any) -> Any:
@@ -145,12 +197,20 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
     :class:`~lightning_vtr.errors.UsageError` (one line from ``lightning-vtr``) instead of printing the usage.
     """
     import argparse
+    import os
     import sys
 
     from lightning_vtr.errors import DataError, UsageError
     from lightning_vtr.models.registry import check_checkpoint
 
     words = list(sys.argv[1:] if argv is None else argv)
+    if os.getcwd() not in sys.path:  # `--model mymodel.MyVoxelNet` from the folder holding mymodel.py
+        sys.path.insert(0, os.getcwd())
+    for name in _option_values(words, ("--model", "--model.class_path")):
+        if "." in name:  # a class path: one line for what jsonargparse would bury in its long message
+            from lightning_vtr.models.registry import check_model_class, import_class
+
+            check_model_class(import_class(name), training=bool(words) and words[0] == "fit")
     if not any(word in ("-h", "--help") for word in words):
         for path in _option_values(words, ("--config", "-c")):
             check_config(path)

@@ -22,17 +22,11 @@ from pathlib import Path
 from typing import Any
 
 from lightning_vtr.cli.arguments import check_output_folder, positive_int
-from lightning_vtr.data.folder_test_set import VIEW_CHOICES, FolderTestSet
-from lightning_vtr.data.pix3d import POOLINGS, Pix3DDataset, read_pix3d
 from lightning_vtr.errors import UsageError
-from lightning_vtr.evaluation.dataset import evaluate_dataset, evaluation_notes, write_evaluation
-from lightning_vtr.evaluation.pix3d import frame_check_summary, frame_check_warning, write_frame_check
-from lightning_vtr.evaluation.predict import make_datamodule, resolve_device
-from lightning_vtr.models.registry import check_checkpoint, load_model
 
 __all__ = [
-    "FOLDER_HELP",
-    "HELP",
+    "POOLINGS",
+    "VIEW_CHOICES",
     "add_arguments",
     "add_folder_arguments",
     "checkpoint_argument",
@@ -40,8 +34,11 @@ __all__ = [
     "run_folder",
 ]
 
-HELP = "evaluate checkpoints on Pix3D photographs; write the paper's Table 5 (mIoU, F-score) as markdown and CSV"
-FOLDER_HELP = "evaluate checkpoints on a folder test set (<set>/<taxonomy>/<model>/NN.png + ShapeNetVox32)"
+#: ``--pooling`` and ``--view-choice`` choices: :data:`lightning_vtr.data.pix3d.POOLINGS` and
+#: :data:`lightning_vtr.data.folder_test_set.VIEW_CHOICES`, written out so that ``--help`` imports no torch (a test
+#: keeps them equal).
+POOLINGS = ("max", "mean")
+VIEW_CHOICES = ("first", "spread", "random")
 
 
 def checkpoint_argument(text: str) -> tuple[str, Path]:
@@ -65,7 +62,11 @@ def _common(parser: argparse.ArgumentParser) -> None:
         help="a checkpoint to evaluate, one table row each (repeat the option); NAME labels the row",
     )
     add(
-        "--model", default=None, help="model class: pix2vox, lrgt or a dotted class path (default: from the checkpoint)"
+        "--model",
+        default=None,
+        metavar="MODEL",
+        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the class "
+        "the checkpoint records, else the package's model that loads it)",
     )
     add("--category", action="append", default=None, help="keep only this category (repeat for more)")
     add("--split-file", type=Path, default=None, help="a Pix2Vox-style split JSON: keep only its --split entries")
@@ -115,21 +116,34 @@ def add_folder_arguments(parser: argparse.ArgumentParser) -> None:
 
 # ---------------------------------------------------------------------------------------------- shared
 def _check_checkpoints_and_out(args: argparse.Namespace) -> None:
-    """Every ``--checkpoint`` a readable Lightning checkpoint, ``--out`` new, empty or an earlier table's."""
+    """Every ``--checkpoint`` a readable Lightning checkpoint, ``--model`` a class, ``--out`` new, empty or an
+    earlier table's."""
+    from lightning_vtr.models.registry import check_checkpoint, model_class
+
     for _, path in args.checkpoint:
         check_checkpoint(path, "--checkpoint")
+    if args.model is not None:
+        model_class(args.model)
     check_output_folder(args.out, marker="table.md")
 
 
 def _load(path: Path, model_class: str | None) -> tuple[Any, Any]:
     """The model and the evaluation transform it was validated with."""
-    model = load_model(path, model_class)
+    from lightning_vtr.evaluation.predict import make_datamodule
+    from lightning_vtr.models.registry import load_model
+
+    model = load_model(path, model_class, option="--checkpoint")
     return model, make_datamodule(path, model).transform
 
 
 # ---------------------------------------------------------------------------------------------- pix3d
 def run(args: argparse.Namespace) -> int:
     """Run ``lightning-vtr pix3d`` on parsed arguments; returns the exit status 0."""
+    from lightning_vtr.data.pix3d import Pix3DDataset, read_pix3d
+    from lightning_vtr.evaluation.dataset import evaluate_dataset, evaluation_notes, write_evaluation
+    from lightning_vtr.evaluation.pix3d import frame_check_summary, frame_check_warning, write_frame_check
+    from lightning_vtr.evaluation.predict import resolve_device
+
     # 1. check inputs and read the photographs
     if not 0.0 <= args.margin <= 2.0:
         raise UsageError(f"`--margin` must be in [0, 2], got {args.margin}")
@@ -193,6 +207,10 @@ def run(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------- folders
 def run_folder(args: argparse.Namespace) -> int:
     """Run ``lightning-vtr evaluate-folder`` on parsed arguments; returns the exit status 0."""
+    from lightning_vtr.data.folder_test_set import FolderTestSet
+    from lightning_vtr.evaluation.dataset import evaluate_dataset, evaluation_notes, write_evaluation
+    from lightning_vtr.evaluation.predict import resolve_device
+
     for option in ("--images", "--voxels"):
         folder = Path(getattr(args, option[2:])).expanduser()
         if not folder.is_dir():

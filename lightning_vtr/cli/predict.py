@@ -24,24 +24,14 @@ import argparse
 from pathlib import Path
 
 from lightning_vtr.cli.arguments import check_output_folder, comma_separated, positive_int
-from lightning_vtr.data.format import load_metadata
 from lightning_vtr.errors import UsageError
-from lightning_vtr.evaluation.predict import (
-    check_view_folder,
-    export_predictions,
-    make_datamodule,
-    predict_dataset,
-    predict_folders,
-    view_folder_pictures,
-)
-from lightning_vtr.export import MESH_FORMATS, write_summary
-from lightning_vtr.models.registry import check_checkpoint, checkpoint_path, load_model
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.utils.validation import check_float
 
-__all__ = ["HELP", "add_arguments", "run"]
+__all__ = ["MESH_FORMATS", "add_arguments", "run"]
 
-HELP = "run a trained model on image folders or a dataset split; write binvox, meshes, sheets and index.html"
+#: ``--mesh-format`` choices: :data:`lightning_vtr.export.MESH_FORMATS`, written out so that ``--help`` imports no
+#: torch (a test keeps the two equal).
+MESH_FORMATS = ("obj", "ply", "stl", "off", "glb")
 
 
 def _rgb(text: str) -> tuple[int, int, int]:
@@ -87,7 +77,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="--data: at most N objects per view set, spread over categories",
     )
     add(
-        "--model", default=None, help="model class: pix2vox, lrgt or a dotted class path (default: from the checkpoint)"
+        "--model",
+        default=None,
+        metavar="MODEL",
+        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the class "
+        "the checkpoint records, else the package's model that loads it)",
     )
     add("--threshold", type=float, default=0.4, help="occupancy threshold of the exports (default 0.4)")
     add("--mesh-format", choices=MESH_FORMATS, default="obj", help="mesh file format (default obj)")
@@ -105,6 +99,19 @@ def run(args: argparse.Namespace) -> int:
     Every input is checked before the model loads or anything is written: the checkpoint file and the image
     folders' listings, then the checkpoint's content and every picture, then ``--out``.
     """
+    from lightning_vtr.data.format import load_metadata
+    from lightning_vtr.evaluation.predict import (
+        check_view_folder,
+        export_predictions,
+        make_datamodule,
+        predict_dataset,
+        predict_folders,
+        view_folder_pictures,
+    )
+    from lightning_vtr.export import write_summary
+    from lightning_vtr.models.registry import check_checkpoint, checkpoint_path, load_model, model_class
+    from lightning_vtr.utils.validation import check_float
+
     # 1. check inputs
     threshold = check_float("--threshold", args.threshold, minimum=0.0, maximum=1.0, min_open=True, max_open=True)
     if not 0 <= args.key_tolerance <= 255:
@@ -120,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     check_checkpoint(args.ckpt)
     for folder in args.images or ():
         check_view_folder(Path(folder).expanduser(), folder)
+    if args.model is not None:
+        model_class(args.model)  # a wrong --model is told before anything is written
     check_output_folder(args.out)
     # 2. load the model and its image transform
     model = load_model(args.ckpt, args.model)

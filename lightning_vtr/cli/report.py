@@ -6,27 +6,53 @@ The flags are the fields of :class:`~lightning_vtr.experiments.report_config.Rep
 :mod:`~lightning_vtr.experiments.flags`: one flag per field, named after it, defaulting to
 :class:`~lightning_vtr.experiments.report_config.ReportConfig`'s and
 :func:`~lightning_vtr.experiments.report_config.default_experiment`'s values. ``--list-strategies`` prints the
-named strategies and exits.
+named strategies (with ``--strategies-file``'s) and exits.
+
+A model of your own: ``--model module.Class`` (any ``LightningModule`` with ``predict_voxels``, ``image_size``,
+``num_views``, ``voxel_resolution``, its own ``training_step`` and ``configure_optimizers``; the working folder is
+importable). A selector of your own: a row of ``--strategies-file FILE`` whose ``selector`` is
+``{class_path: module.Class, init_args: {...}}``; the file's rows are added to the shipped ones
+(``--only-strategies-file``: used alone) and named in ``--strategies``.
 """
 
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from lightning_vtr.experiments.report import ReportConfig
 
-__all__ = ["HELP", "add_arguments", "list_strategies", "report_config", "run"]
+__all__ = ["add_arguments", "list_strategies", "report_config", "run"]
 
-HELP = "run the paper's comparison over seeds; write Table 1 with CIs, paired differences, CSVs and a chart"
 #: ExperimentConfig fields without a flag of their own here: ``--seeds`` sets ``seed``.
 _EXPERIMENT_EXCLUDED = ("seed",)
 
 
+def _unchecked(cls: Any, **changes: Any) -> Any:
+    """An instance of dataclass ``cls`` holding its field defaults and ``changes``, its checks skipped: the flags'
+    defaults without importing what the checks need (torch, the strategy rows), so ``--help`` answers at once."""
+    import dataclasses
+
+    config = cls.__new__(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in changes:
+            value = changes[f.name]
+        else:
+            value = f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[operator]
+        setattr(config, f.name, value)
+    return config
+
+
+def _unchecked_defaults() -> ReportConfig:
+    from lightning_vtr.experiments.config import ExperimentConfig
+    from lightning_vtr.experiments.report_config import REPORT_EXPERIMENT, ReportConfig
+
+    return _unchecked(ReportConfig, experiment=_unchecked(ExperimentConfig, **REPORT_EXPERIMENT))
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from lightning_vtr.experiments.flags import add_config_arguments
-    from lightning_vtr.experiments.report import ReportConfig, default_experiment
 
     parser.description = (
         "Per seed, pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on "
@@ -34,9 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "differences to None-VTR and Random, the training views' distribution, the time split), results.csv, "
         "differences.csv, report.png and timing.json into --out. A killed report re-run skips every finished run."
     )
-    add_config_arguments(parser, default_experiment(), exclude=_EXPERIMENT_EXCLUDED)
+    add_config_arguments(parser, _unchecked_defaults().experiment, exclude=_EXPERIMENT_EXCLUDED)
     ablations = parser.add_mutually_exclusive_group()
-    add_config_arguments(parser, ReportConfig(default_experiment()), groups={"ablations": ablations})
+    add_config_arguments(parser, _unchecked_defaults(), groups={"ablations": ablations})
     parser.set_defaults(jobs=None)  # auto_jobs, once the experiment is known
     ablations.add_argument(
         "--no-ablations", action="store_true", help="run no ablation (the default; kept for old command lines)"
@@ -48,24 +74,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def report_config(args: argparse.Namespace, command: str | None = None) -> ReportConfig:
     """The :class:`~lightning_vtr.experiments.report.ReportConfig` that parsed ``args`` describe."""
+    from lightning_vtr.errors import UsageError
     from lightning_vtr.experiments.flags import config_from_arguments
-    from lightning_vtr.experiments.report import ReportConfig, default_experiment
-    from lightning_vtr.experiments.report_config import auto_jobs
+    from lightning_vtr.experiments.report_config import auto_jobs, default_experiment
+    from lightning_vtr.experiments.strategies import report_variants
+    from lightning_vtr.models.registry import model_class
 
+    model_class(args.model, "--model", training=True)  # one line naming what a class of yours lacks
+    variants = report_variants(args.strategies_file, replace=args.only_strategies_file)
+    unknown = [name for name in args.strategies if name not in variants]
+    if unknown:
+        raise UsageError(
+            f"`--strategies` names unknown row(s) {', '.join(map(repr, unknown))} (`--list-strategies` lists the rows"
+            + (f" with {args.strategies_file}'s" if args.strategies_file else "; rows of your own: --strategies-file")
+            + ")"
+        )
     experiment = config_from_arguments(args, default_experiment(), exclude=_EXPERIMENT_EXCLUDED)
     if args.jobs is None:
         args = argparse.Namespace(**{**vars(args), "jobs": auto_jobs(experiment)})
-    report = config_from_arguments(args, ReportConfig(default_experiment()), experiment=experiment, command=command)
+    report = config_from_arguments(args, _unchecked_defaults(), experiment=experiment, command=command)
     if args.no_ablations:
         report.ablations = []
     return report
 
 
-def list_strategies() -> str:
-    """One line per named strategy: ``name: title - description``, in the report's row order."""
-    from lightning_vtr.experiments.strategies import VARIANTS
+def list_strategies(strategies_file: str | None = None, only: bool = False) -> str:
+    """One line per named strategy: ``name: title - description``, in the report's row order (the shipped rows
+    and ``strategies_file``'s, or the file's alone with ``only``)."""
+    from lightning_vtr.experiments.strategies import report_variants
 
-    return "\n".join(f"{name}: {variant.title} - {variant.description}" for name, variant in VARIANTS.items())
+    variants = report_variants(strategies_file, replace=only)
+    return "\n".join(f"{name}: {variant.title} - {variant.description}" for name, variant in variants.items())
 
 
 def check_inputs(args: argparse.Namespace) -> None:
@@ -89,12 +128,18 @@ def check_inputs(args: argparse.Namespace) -> None:
         if data.exists() and not data.is_dir():
             raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} (a file)")
         load_metadata(data)
+    if args.strategies_file is not None:
+        from lightning_vtr.experiments.strategies import report_variants
+
+        report_variants(args.strategies_file, replace=args.only_strategies_file)  # a bad row before anything runs
+    elif args.only_strategies_file:
+        raise UsageError("`--only-strategies-file` needs `--strategies-file FILE`")
     check_output_folder(Path(args.out), marker="seed_*")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.list_strategies:
-        print(list_strategies())
+        print(list_strategies(args.strategies_file, args.only_strategies_file))
         return 0
     from lightning_vtr.experiments.report import run_report
 

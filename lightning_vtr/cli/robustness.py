@@ -35,18 +35,11 @@ import io
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lightning_vtr.cli.arguments import check_output_folder, positive_int
 from lightning_vtr.cli.pix3d import checkpoint_argument
-from lightning_vtr.data.format import load_metadata
 from lightning_vtr.errors import UsageError
-from lightning_vtr.geometry import check_bin_interval
-from lightning_vtr.utils.io import atomic_write
 
-__all__ = ["HELP", "add_arguments", "run"]
-
-HELP = "measure checkpoints' IoU around every viewpoint bin; write bins.csv, equal-area maps and index.html"
+__all__ = ["add_arguments", "run"]
 
 #: The file whose presence marks an earlier output of this command (``--out`` may be reused).
 MARKER = "bins.csv"
@@ -78,7 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--objects", type=positive_int, default=None, help="at most N objects, round-robin over categories")
     add("--scores", action="store_true", help="also write the score-validity table of every checkpoint")
     add(
-        "--model", default=None, help="model class: pix2vox, lrgt or a dotted class path (default: from the checkpoint)"
+        "--model",
+        default=None,
+        metavar="MODEL",
+        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the class "
+        "each checkpoint records, else the package's model that loads it)",
     )
     add("--batch-size", type=positive_int, default=64, help="view sets per forward pass (default 64)")
     add("--device", default="auto", help="torch device: auto (CUDA when available), cpu, cuda:0, ...")
@@ -102,7 +99,9 @@ def _check_names(checkpoints: list[tuple[str, Path]]) -> None:
 
 def _check_inputs(args: argparse.Namespace) -> int:
     """Every check before a model loads; returns ``--k``."""
-    from lightning_vtr.models.registry import check_checkpoint, checkpoint_path
+    from lightning_vtr.data.format import load_metadata
+    from lightning_vtr.geometry import check_bin_interval
+    from lightning_vtr.models.registry import check_checkpoint, checkpoint_path, model_class
 
     try:
         k = check_bin_interval(args.k, "--k")
@@ -114,6 +113,8 @@ def _check_inputs(args: argparse.Namespace) -> int:
         checkpoint_path(path)
     for _, path in args.ckpt:
         check_checkpoint(path)
+    if args.model is not None:
+        model_class(args.model)
     data = Path(args.data).expanduser()
     if not data.is_dir():
         found = "a file" if data.exists() else "no such folder"
@@ -157,12 +158,16 @@ def _difference_rows(first: Any, second: Any) -> list[dict[str, Any]]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``lightning-vtr robustness`` on parsed arguments; returns the exit status 0."""
+    import numpy as np
+
     from lightning_vtr.evaluation.predict import make_datamodule, resolve_device
     from lightning_vtr.evaluation.robustness import robustness_map
     from lightning_vtr.evaluation.robustness_callback import ObjectSubset, spread_over_categories
     from lightning_vtr.evaluation.robustness_plot import _file_stem, write_index_html
     from lightning_vtr.evaluation.robustness_scores import selection_scores, validity_table
     from lightning_vtr.models.registry import load_model
+    from lightning_vtr.utils.io import atomic_write
+    from lightning_vtr.utils.paths import join_under
 
     # 1. check every input
     k = _check_inputs(args)
@@ -204,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
     header = ["checkpoint", *next(iter(maps.values())).bin_rows(None)[0]]
     atomic_write(out / MARKER, _csv_text(header, _bins_rows(maps)))
     for name, rmap in maps.items():
-        rmap.to_csv(out / "maps" / _file_stem(name), per_category=True)
+        rmap.to_csv(join_under(out, "maps", _file_stem(name)), per_category=True)
     names = list(maps)
     if len(names) >= 2:
         rows = _difference_rows(maps[names[0]], maps[names[1]])

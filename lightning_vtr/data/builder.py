@@ -50,6 +50,7 @@ import json
 import multiprocessing as mp
 import os
 import time
+import warnings
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -75,6 +76,7 @@ from lightning_vtr.data.mesh import MESH_EXTENSIONS
 from lightning_vtr.geometry import sample_uniform_viewpoints, wrap_yaw
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.io import atomic_write, remove_stale_temporaries
+from lightning_vtr.utils.paths import check_name, check_no_case_collisions, join_under
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
@@ -294,7 +296,20 @@ def _discover(
             up = up_axis or "y"
         if objects_per_category is not None:
             found = found[:objects_per_category]
+        # Both names become folders of the output: one plain component each, unique per folder in any case.
+        check_name(category, source=root, entry="category folder")
+        for oid, _ in found:
+            check_name(oid, source=cat_dir, entry="mesh file" if layout == "generic" else "model folder")
+        check_no_case_collisions([f"{category}/{oid}" for oid, _ in found], source=cat_dir, entry="object")
+        stems = [oid for oid, _ in found]
+        twice = sorted({oid for oid in stems if stems.count(oid) > 1})
+        if twice:
+            raise ValueError(
+                f"{cat_dir}: every object must have one mesh file, got several for {twice} (one stem, several "
+                "suffixes); keep one of them"
+            )
         tasks += [_Task(category, oid, "mesh", path=str(path), up_axis=up) for oid, path in found]
+    check_no_case_collisions([t.key for t in tasks], source=root, entry="category folder")
     if wanted is not None:
         missing = wanted - {t.category for t in tasks} - {p.name for p in root.iterdir()}
         if missing:
@@ -325,7 +340,7 @@ def _worker_init() -> None:
 def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | None]:
     """Build one object; returns ``(key, None)`` or ``(key, error message)`` and never raises."""
     task, opts, out = args
-    directory = object_dir(out, task.category, task.object_id)
+    directory = join_under(out, "objects", task.category, task.object_id)
     try:
         from lightning_vtr.data.binvox import write_binvox
         from lightning_vtr.data.mesh import load_mesh, save_mesh
@@ -371,14 +386,36 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
         return task.key, message
 
 
+#: The fewest objects a category needs for one validation and one test object besides its training objects.
+MIN_OBJECTS_FOR_SPLITS = 3
+
+
+def _split_counts(n: int, ratios: Sequence[float]) -> list[int]:
+    """``[train, val, test]`` object counts of a category of ``n`` objects split ``ratios``.
+
+    The counts are the rounded ratios, except that with at least :data:`MIN_OBJECTS_FOR_SPLITS` objects a
+    validation or test split with a positive ratio that rounds to 0 objects takes one object from the
+    largest other split (train on ties). Counts that give both at least one object are the rounded ones.
+    """
+    counts = [round(ratios[0] * n), round(ratios[1] * n)]
+    counts.append(n - sum(counts))
+    if n >= MIN_OBJECTS_FOR_SPLITS:
+        for part in (1, 2):
+            if ratios[part] > 0 and counts[part] == 0:
+                donor = max((i for i in range(3) if counts[i] > 1), key=lambda i: (counts[i], -i))
+                counts[donor] -= 1
+                counts[part] += 1
+    return counts
+
+
 def _splits(keys: list[tuple[str, str]], ratios: Sequence[float], seed: int) -> dict[str, dict[str, list[str]]]:
-    """Split each category's objects ``ratios`` (train, val, test) with a permutation seeded per category."""
+    """Split each category's objects ``ratios`` (train, val, test) with a permutation seeded per category
+    (counts from :func:`_split_counts`)."""
     out: dict[str, dict[str, list[str]]] = {}
     for category in sorted({c for c, _ in keys}):
         ids = sorted(o for c, o in keys if c == category)
         order = np.random.default_rng([seed, _stable_int(category)]).permutation(len(ids))
-        n_train = round(ratios[0] * len(ids))
-        n_val = round(ratios[1] * len(ids))
+        n_train, n_val, _ = _split_counts(len(ids), ratios)
         shuffled = [ids[i] for i in order]
         out[category] = {
             "train": sorted(shuffled[:n_train]),
@@ -386,6 +423,22 @@ def _splits(keys: list[tuple[str, str]], ratios: Sequence[float], seed: int) -> 
             "test": sorted(shuffled[n_train + n_val :]),
         }
     return out
+
+
+def _empty_split_warning(splits: dict[str, dict[str, list[str]]], ratios: Sequence[float]) -> str | None:
+    """One line naming the categories left without a validation or test object their ratio asks for."""
+    short = []
+    for category, parts in sorted(splits.items()):
+        empty = [name for name, ratio in zip(("val", "test"), ratios[1:]) if ratio > 0 and not parts[name]]
+        if empty:
+            total = sum(len(ids) for ids in parts.values())
+            short.append(f"{category} ({total} objects, no {' or '.join(empty)})")
+    if not short:
+        return None
+    return (
+        f"build_dataset: too few objects for a validation and a test object (a category needs at least "
+        f"{MIN_OBJECTS_FOR_SPLITS}): {', '.join(short)}; build more objects of these categories"
+    )
 
 
 def _check_args(
@@ -538,7 +591,9 @@ def build_dataset(
         resolution: voxel grid side R.
         views_per_set: views per view set (the paper: 24).
         aligned_pitch: the Aligned set's elevation in degrees (default 30; see the module docstring).
-        split: (train, val, test) ratios per category.
+        split: (train, val, test) ratios per category, rounded to object counts; a category of at least 3
+            objects whose validation or test ratio is positive but rounds to no object gets one, taken from its
+            largest other split (so 4 objects split 2 / 1 / 1). A category too small for that warns.
         seed: seeds the procedural shapes, the random view sets and the split.
         workers: processes rendering in parallel ('spawn' context: each opens its own GL context).
         shard: ``(i, n)``: build only objects ``i, i + n, ...`` of the sorted object list.
@@ -554,6 +609,10 @@ def build_dataset(
 
     Returns:
         A :class:`BuildReport` of this pass.
+
+    Warns:
+        UserWarning: when writing ``metadata.json``, naming every category left without a validation or test
+            object that its ratio asks for (fewer than 3 objects).
 
     Raises:
         TypeError: an argument of the wrong type (names the argument and the value), e.g. a ``split`` or
@@ -646,6 +705,9 @@ def _finalize(
         elif t.key not in errors:
             return False  # another shard is still working on it
     splits = _splits(complete, split, seed)
+    message = _empty_split_warning(splits, split)
+    if message:
+        warnings.warn(message, UserWarning, stacklevel=3)
     atomic_write_json(out / "splits.json", splits)
     objects = {}
     for category, parts in splits.items():

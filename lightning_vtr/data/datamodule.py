@@ -14,6 +14,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
+from PIL import Image
 from torch.utils.data import ConcatDataset, DataLoader, DistributedSampler
 
 from lightning_vtr.data.dataset import (
@@ -26,8 +27,9 @@ from lightning_vtr.data.dataset import (
     write_generated_sample,
 )
 from lightning_vtr.data.format import ObjectRecord
-from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe
-from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.data.transforms import IMAGE_RECIPES, BackgroundFolder, ImageRecipe, ImageTransform
+from lightning_vtr.protocol import VIEW_SETS, check_model_matches_data
+from lightning_vtr.utils.paths import check_name, join_under
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["VIEW_SETS", "VTRDataModule"]
@@ -84,8 +86,10 @@ class VTRDataModule(L.LightningDataModule):
             uses the embedded procedural dataset, with ``embedded`` as build options.
         shapenet_rendering: instead of ``root``, a dict ``{"rendering_root", "voxel_root", "split_file"}``
             for the 3D-R2N2 / Pix2Vox layout (one view set, served as "aligned").
-        num_views: images per sample.
-        image_size: side of the model input in pixels.
+        num_views: images per sample. A model's declared ``num_views`` must equal it when training.
+        image_size: side of the model input in pixels: images are resized to it. ``None`` takes the dataset's
+            rendered size (``metadata.json``'s ``image_size``; with ``shapenet_rendering`` the side of the first
+            object's first image), so nothing is resized. A model's declared ``image_size`` must equal it.
         background: RGB compositing background (in training too, unless ``background_range`` is given); or
             ``"folder:PATH"``: training views are composited over random crops of the images under ``PATH``
             (``.png``/``.jpg``/``.jpeg``, recursive; e.g. SUN backgrounds for the Pix3D protocol), one image
@@ -128,12 +132,19 @@ class VTRDataModule(L.LightningDataModule):
             objects' view sets, with ``test_repeats`` items each, to choose among models without touching the
             test split.
 
+    At :meth:`setup` under a Trainer, the Trainer's model is checked against the datamodule with
+    :func:`~lightning_vtr.protocol.check_model_matches_data`: its declared ``image_size`` and
+    ``voxel_resolution`` (and ``num_views`` when fitting) must equal :attr:`image_size`,
+    :attr:`voxel_resolution` and ``num_views``; a model without these attributes is not checked.
+
     Raises:
         DatasetFormatError: at :meth:`setup`, with ``verify=True``, when the dataset has problems.
-        ValueError: on invalid arguments, and for any ``max_generated`` but ``None`` (naming its replacement).
+        ValueError: on invalid arguments, and for any ``max_generated`` but ``None`` (naming its replacement);
+            at :meth:`setup`, when the Trainer's model declares another ``image_size``, ``voxel_resolution`` or
+            (when fitting) ``num_views`` (one line naming both values).
 
     Example:
-        >>> dm = VTRDataModule(num_views=3, image_size=64, batch_size=8)  # doctest: +SKIP
+        >>> dm = VTRDataModule(num_views=3, batch_size=8)  # doctest: +SKIP
         >>> trainer.fit(model, datamodule=dm)  # doctest: +SKIP
         >>> dm = VTRDataModule(recipe="pix2vox", image_size=224)  # doctest: +SKIP
     """
@@ -144,7 +155,7 @@ class VTRDataModule(L.LightningDataModule):
         *,
         shapenet_rendering: dict[str, str] | None = None,
         num_views: int = 3,
-        image_size: int = 224,
+        image_size: int | None = None,
         background: tuple[int, int, int] | str = (255, 255, 255),
         normalize: str | None = "imagenet",
         batch_size: int = 32,
@@ -169,6 +180,8 @@ class VTRDataModule(L.LightningDataModule):
                 f"got {shapenet_rendering!r}"
             )
         check_int("num_views", num_views, minimum=1)
+        if image_size is not None:
+            check_int("image_size", image_size, minimum=1)
         check_int("batch_size", batch_size, minimum=1)
         check_int("num_workers", num_workers, minimum=0)
         check_int("test_repeats", test_repeats, minimum=1)
@@ -204,10 +217,13 @@ class VTRDataModule(L.LightningDataModule):
         self.recipe = _resolve_recipe(recipe, colour, normalize, background_range)
         if background_folder is not None:
             self.recipe = dataclasses.replace(self.recipe, background_folder=background_folder)
-        #: validation/test (and the callback's) transform; ``train_transform`` adds the recipe's random ops.
-        self.transform = self.recipe.eval_transform(image_size)
-        differs = self.recipe.is_random or self.recipe.background_range is not None
-        self.train_transform = self.recipe.train_transform(image_size) if differs else self.transform
+        self._image_size = None if image_size is None else int(image_size)
+        self._dataset_sizes: dict[str, int] | None = None  # the dataset's image size and voxel resolution, once read
+        self._transforms: tuple[ImageTransform, ImageTransform] | None = None  # (eval, train), once the size is known
+        if image_size is not None:
+            self._transforms = self._build_transforms(int(image_size))
+        elif self.recipe.background_folder is not None:
+            BackgroundFolder(self.recipe.background_folder)  # a missing or empty folder fails here, as with a size
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.test_view_sets = tuple(test_view_sets)
@@ -216,6 +232,7 @@ class VTRDataModule(L.LightningDataModule):
         self.test_repeats = int(test_repeats)
         self.embedded = dict(embedded or {})
         self._generated_dir_arg = generated_dir
+        self._write_dir: Path | None = None  # where this run writes new samples, resolved at first use
         self.verify = verify
         self.train_view_set = train_view_set
         self.test_split = test_split
@@ -238,6 +255,19 @@ class VTRDataModule(L.LightningDataModule):
         return self.root
 
     def setup(self, stage: str | None = None) -> None:
+        """Read the dataset (once), then check the Trainer's model against it (every call under a Trainer).
+
+        Raises:
+            ValueError: the Trainer's model declares another ``image_size``, ``voxel_resolution`` or, when
+                ``stage`` is ``"fit"``, ``num_views`` than this datamodule serves
+                (:func:`~lightning_vtr.protocol.check_model_matches_data`).
+        """
+        self._load_records()
+        model = self.trainer.lightning_module if self.trainer is not None else None
+        if model is not None:
+            check_model_matches_data(model, self, training=stage in (None, "fit"))
+
+    def _load_records(self) -> None:
         if self._records is not None:
             return
         root = self._resolve_root()
@@ -285,8 +315,7 @@ class VTRDataModule(L.LightningDataModule):
 
     @property
     def records(self) -> list[ObjectRecord]:
-        if self._records is None:
-            self.setup()
+        self._load_records()
         assert self._records is not None, "setup sets the records"
         return self._records
 
@@ -299,17 +328,91 @@ class VTRDataModule(L.LightningDataModule):
         """The dataset's category names, sorted (the vocabulary models use for per-category metrics)."""
         return sorted({r.category for r in self.records})
 
+    # ------------------------------------------------------------------ sizes and transforms
+    @property
+    def image_size(self) -> int:
+        """Side in pixels of the images served: ``image_size`` if given, else the dataset's rendered size.
+
+        Raises:
+            ValueError: with ``shapenet_rendering``, the first image is not square or there are no objects.
+        """
+        if self._image_size is not None:
+            return self._image_size
+        return self._read_dataset_sizes()["image_size"]
+
+    @property
+    def voxel_resolution(self) -> int:
+        """``R`` of the ``(R, R, R)`` voxel grids served: the dataset's (``metadata.json``'s ``resolution``; with
+        ``shapenet_rendering`` the first object's grid)."""
+        return self._read_dataset_sizes()["resolution"]
+
+    @property
+    def transform(self) -> ImageTransform:
+        """The validation/test (and the callback's) transform, at :attr:`image_size`: RGBA uint8
+        ``(T, H, W, 4)`` -> ``(T, 3, S, S)`` float."""
+        return self._transform_pair()[0]
+
+    @property
+    def train_transform(self) -> ImageTransform:
+        """The training transform: :attr:`transform` plus the recipe's random ops (the same object without any)."""
+        return self._transform_pair()[1]
+
+    def _build_transforms(self, image_size: int) -> tuple[ImageTransform, ImageTransform]:
+        evaluation = self.recipe.eval_transform(image_size)
+        differs = self.recipe.is_random or self.recipe.background_range is not None
+        return evaluation, (self.recipe.train_transform(image_size) if differs else evaluation)
+
+    def _transform_pair(self) -> tuple[ImageTransform, ImageTransform]:
+        if self._transforms is None:
+            self._transforms = self._build_transforms(self.image_size)
+        return self._transforms
+
+    def _read_dataset_sizes(self) -> dict[str, int]:
+        """``{"image_size", "resolution"}`` of the dataset, read once."""
+        if self._dataset_sizes is not None:
+            return self._dataset_sizes
+        if self.shapenet_rendering is None:
+            from lightning_vtr.data.format import load_metadata
+
+            root = self._resolve_root()
+            assert root is not None, "_resolve_root sets a root when there is no shapenet_rendering"
+            meta = load_metadata(root)
+            sizes = {"image_size": int(meta["image_size"]), "resolution": int(meta["resolution"])}
+        else:
+            if not self.records:
+                raise ValueError(
+                    f"`shapenet_rendering` {self.shapenet_rendering!r} has no objects to read the image size from"
+                    + (f" (categories={list(self._category_filter)})" if self._category_filter else "")
+                    + "; pass `image_size`"
+                )
+            first = self.records[0]
+            path = next(iter(first.views.values()))[0][0]
+            with Image.open(path) as image:
+                width, height = image.size
+            if width != height:
+                raise ValueError(
+                    f"`image_size` must be given for `shapenet_rendering` images that are not square: {path} is "
+                    f"{width}x{height} pixels"
+                )
+            sizes = {"image_size": int(width), "resolution": int(load_voxels(first).shape[0])}
+        self._dataset_sizes = sizes
+        return sizes
+
     @property
     def generated_dir(self) -> Path:
-        """Where generated samples live: ``generated_dir`` if given, else ``<trainer log dir>/vtr_generated``
-        (so a shared, read-only dataset is never written to). Fixed once first resolved."""
-        if self._generated_dir_arg is None:
-            if self.trainer is not None:
-                base = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        """Where this run writes new generated samples: ``generated_dir`` if given, else the running Trainer's
+        ``<log dir>/vtr_generated`` (``<root>/generated/vtr_generated`` without a Trainer), so a shared, read-only
+        dataset is never written to and a resumed run never writes into the run it resumes. Fixed once first
+        resolved. Samples restored from a checkpoint are read from the folder their entry names (``"root"``)."""
+        if self._write_dir is None:
+            if self._generated_dir_arg is not None:
+                base = Path(self._generated_dir_arg).expanduser()
+            elif self.trainer is not None:  # `log_dir` is a collective under DDP: every rank resolves it
+                base = Path(self.trainer.log_dir or self.trainer.default_root_dir) / "vtr_generated"
             else:
-                base = Path(self.root if self.root is not None else ".") / "generated"
-            self._generated_dir_arg = str(base / "vtr_generated")
-        return Path(self._generated_dir_arg).expanduser()
+                base = Path(self.root if self.root is not None else ".") / "generated" / "vtr_generated"
+            self._write_dir = base.absolute()
+        return self._write_dir
 
     # ------------------------------------------------------------------ loaders
     def _dataset(self, split: str, view_set: str, train: bool, repeats: int = 1) -> VTRDataset:
@@ -450,7 +553,7 @@ class VTRDataModule(L.LightningDataModule):
         """
         if max_total is not None:
             check_int("max_total", max_total, minimum=0)
-        self.setup()
+        self._load_records()
         directory = self.generated_dir
         if not getattr(self, "_stale_removed", False):  # a killed run's half-written files, once per run
             from lightning_vtr.utils.io import remove_stale_temporaries
@@ -461,8 +564,9 @@ class VTRDataModule(L.LightningDataModule):
         for sample in samples:
             if (sample.category, sample.object_id) not in self._by_key:
                 raise KeyError(f"add_samples: unknown object {sample.category}/{sample.object_id}")
-            sample_dir = directory / f"{self._next_sample_id:07d}_{sample.category}_{sample.object_id}"
+            sample_dir = join_under(directory, f"{self._next_sample_id:07d}_{sample.category}_{sample.object_id}")
             entry = write_generated_sample(sample, sample_dir)
+            entry["root"] = str(directory)
             entry["id"] = self._next_sample_id
             self._next_sample_id += 1
             new.append(entry)
@@ -490,13 +594,21 @@ class VTRDataModule(L.LightningDataModule):
             )
         self._generated = [dict(e) for e in state_dict.get("generated", [])]
         self._next_sample_id = int(state_dict.get("next_sample_id", len(self._generated)))
-        if state_dict.get("generated_dir") and self._generated_dir_arg is None:
-            self._generated_dir_arg = state_dict["generated_dir"]
-        missing = [e["dir"] for e in self._generated if not (self.generated_dir / e["dir"]).is_dir()]
+        saved_dir = state_dict.get("generated_dir")  # version 1 entries have no "root": they lived here
+        for entry in self._generated:  # a checkpoint from elsewhere names folders under generated_dir
+            check_name(entry["dir"], source="the checkpoint's VTRDataModule state", entry="generated sample dir")
+            root = entry.get("root") or saved_dir or str(self.generated_dir)
+            # moved since: found under the `generated_dir` given
+            if self._generated_dir_arg is not None and not (Path(root) / entry["dir"]).is_dir():
+                root = str(Path(self._generated_dir_arg).expanduser().absolute())
+            entry["root"] = root
+        missing = [
+            str(Path(e["root"]) / e["dir"]) for e in self._generated if not (Path(e["root"]) / e["dir"]).is_dir()
+        ]
         if missing:
             raise FileNotFoundError(
-                f"The checkpoint lists {len(missing)} generated samples missing under {self.generated_dir} "
-                f"(first: {missing[0]}). Pass `generated_dir` pointing at the run's generated samples."
+                f"The checkpoint lists {len(missing)} generated samples that are missing (first: {missing[0]}). Pass "
+                "`generated_dir` pointing at the folder that holds the checkpointed run's generated samples."
             )
 
 

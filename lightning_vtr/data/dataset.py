@@ -22,6 +22,7 @@ from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import ObjectRecord
 from lightning_vtr.data.transforms import IMAGENET_MEAN, IMAGENET_STD, ImageTransform
 from lightning_vtr.utils.io import atomic_open, atomic_write
+from lightning_vtr.utils.paths import check_name, join_under
 from lightning_vtr.utils.validation import check_int
 
 __all__ = [
@@ -220,7 +221,7 @@ def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
         )
     names = [f"{i:02d}.png" for i in range(images.shape[0])]
     for image, name in zip(images, names):
-        _atomic_save_png(image, directory / name)
+        _atomic_save_png(image, join_under(directory, name))
     return {
         "category": sample.category,
         "object_id": sample.object_id,
@@ -237,6 +238,8 @@ class GeneratedDataset(Dataset):
     A random ``transform`` draws a sample's augmentation from ``(seed, epoch, id, 1)``, ``id`` being the
     entry's stable sample id (its position when the entry has none), so it does not change when older
     samples are dropped and never coincides with a training object's key ``(seed, epoch, index)``.
+    An entry's images are read from ``<entry["root"]>/<entry["dir"]>``, or ``<directory>/<entry["dir"]>`` when
+    it has no ``"root"``.
     """
 
     def __init__(
@@ -251,6 +254,12 @@ class GeneratedDataset(Dataset):
     ) -> None:
         self.entries = list(entries)
         self.directory = Path(directory)
+        # The entries may come from a checkpoint made elsewhere: their names must stay inside `directory`.
+        source = self.directory / "index.json"
+        for entry in self.entries:
+            check_name(entry["dir"], source=source, entry="generated sample dir")
+            for name in entry["images"]:
+                check_name(name, source=source, entry=f"image of sample {entry['dir']!r}")
         self.records = records
         self.transform = transform or ImageTransform()
         self.seed = int(seed)
@@ -265,7 +274,7 @@ class GeneratedDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         entry = self.entries[index]
-        sample_dir = self.directory / entry["dir"]
+        sample_dir = Path(entry.get("root", self.directory)) / entry["dir"]  # "root": the folder it was written to
         images = np.stack([load_rgba(sample_dir / name) for name in entry["images"]])
         key = (self.seed, self.epoch, int(entry.get("id", index)), _GENERATED_STREAM)
         return {

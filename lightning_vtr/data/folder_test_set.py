@@ -47,6 +47,7 @@ from lightning_vtr.data.format import IMAGE_SUFFIXES, SHAPENET_SYNSETS, SPLITS, 
 from lightning_vtr.data.shapenet_rendering import _load_split_file
 from lightning_vtr.data.transforms import ImageTransform
 from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.paths import check_name, check_no_case_collisions
 from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = ["VIEW_CHOICES", "FolderTestSet", "choose_views"]
@@ -189,7 +190,13 @@ class FolderTestSet(Dataset):
         records, skipped = [], []
         for taxonomy in taxonomies:
             category = SHAPENET_SYNSETS.get(taxonomy.name, taxonomy.name)
-            for model_dir in sorted(p for p in taxonomy.iterdir() if p.is_dir()):
+            # Folder names become the names of the outputs written for them.
+            check_name(taxonomy.name, source=self.image_root, entry="taxonomy folder")
+            models = sorted(p for p in taxonomy.iterdir() if p.is_dir())
+            for model_dir in models:
+                check_name(model_dir.name, source=taxonomy, entry="model folder")
+            check_no_case_collisions([p.name for p in models], source=taxonomy, entry="model folder")
+            for model_dir in models:
                 if listed is not None and (taxonomy.name, model_dir.name) not in listed:
                     continue
                 pictures = sorted(

@@ -17,6 +17,12 @@ import numpy as np
 
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import (
+    UnsafeNameError,
+    check_name,
+    check_no_case_collisions,
+    check_object_key,
+)
 
 __all__ = [
     "FORMAT_NAME",
@@ -37,6 +43,7 @@ __all__ = [
     "read_object",
     "read_object_json",
     "scan_dataset",
+    "unsafe_names",
 ]
 
 FORMAT_NAME = "lightning_vtr.shapenet_vtr"
@@ -127,7 +134,7 @@ def atomic_write_json(path: str | Path, payload: Any) -> None:
 
 
 def object_dir(root: str | Path, category: str, object_id: str) -> Path:
-    """``<root>/objects/<category>/<object_id>``."""
+    """``<root>/objects/<category>/<object_id>``; the readers check both names before they call it."""
     return Path(root) / "objects" / category / object_id
 
 
@@ -167,22 +174,83 @@ def _check_views(views: Any, source: Path, view_sets: tuple[str, ...] | list[str
 
 
 def read_object_json(directory: str | Path) -> dict:
-    """Read and check ``<object dir>/object.json`` (category, object_id and the three view sets)."""
+    """Read and check ``<object dir>/object.json`` (category, object_id and the three view sets).
+
+    Raises:
+        DatasetFormatError: the file is missing, not JSON, lacks a field or holds bad viewpoints.
+        UnsafeNameError: its category, object id or a view-set name is not a plain path component.
+    """
     path = Path(directory) / "object.json"
     info = _read_json(path)
+    if not isinstance(info, dict):
+        raise DatasetFormatError(f"{path} must hold a JSON object, got {type(info).__name__}")
     missing = [k for k in ("category", "object_id", "views") if k not in info]
     if missing:
         raise DatasetFormatError(f"{path} lacks the fields {missing}")
+    check_name(info["category"], source=path, entry="category")
+    check_name(info["object_id"], source=path, entry="object_id")
+    if isinstance(info["views"], Mapping):
+        for name in info["views"]:
+            check_name(name, source=path, entry="view set")
     _check_views(info["views"], path, list(info["views"]))
     return info
 
 
-def load_metadata(root: str | Path) -> dict:
+def unsafe_names(meta: Mapping[str, Any], source: str | Path) -> list[UnsafeNameError]:
+    """Every name of a ``metadata.json`` that is not a plain path component, one error each.
+
+    Checks the view-set names, the object keys (``'<category>/<object_id>'``, both plain) and that no two
+    categories, or two object ids of one category, differ only in case (see :mod:`lightning_vtr.utils.paths`).
+
+    Args:
+        meta: the parsed ``metadata.json`` (with ``objects`` and ``view_sets``).
+        source: the file it was read from (named in each message).
+
+    Returns:
+        One :class:`~lightning_vtr.utils.paths.UnsafeNameError` per bad name, in file order; empty when all
+        names are safe.
+
+    Example:
+        >>> meta = {"view_sets": ["aligned"], "objects": {"chair/c0": {}, "chair/../../x": {}}}
+        >>> [err.rule for err in unsafe_names(meta, "metadata.json")]
+        ['dot']
+    """
+    found: list[UnsafeNameError] = []
+    for name in meta.get("view_sets") or ():
+        try:
+            check_name(name, source=source, entry="view set")
+        except UnsafeNameError as err:
+            found.append(err)
+    plain = []
+    for key in meta.get("objects") or {}:
+        try:
+            check_object_key(key, source=source, entry="object key")
+            plain.append(key)
+        except UnsafeNameError as err:
+            found.append(err)
+    try:
+        check_no_case_collisions(plain, source=source, entry="object key")
+    except UnsafeNameError as err:
+        found.append(err)
+    return found
+
+
+def load_metadata(root: str | Path, *, check_names: bool = True) -> dict:
     """Read and validate ``<root>/metadata.json``.
+
+    Args:
+        root: the dataset directory.
+        check_names: refuse a view-set name or object key that is not a plain path component (see
+            :func:`unsafe_names`); ``False`` leaves that to the caller (``verify_dataset`` lists them all).
+
+    Returns:
+        The parsed file.
 
     Raises:
         DatasetFormatError: the file is missing (the message says how to build or finish the dataset),
             is not JSON, is of another format or of a newer version than this package reads.
+        UnsafeNameError: (``check_names``) a name is not a plain path component; the message names the file,
+            the entry and the rule.
     """
     path = Path(root) / "metadata.json"
     if not path.is_file():
@@ -210,13 +278,20 @@ def load_metadata(root: str | Path) -> dict:
     missing = [k for k in ("objects", "view_sets", "resolution", "image_size") if k not in meta]
     if missing:
         raise DatasetFormatError(f"{path} lacks the fields {missing}")
+    if not isinstance(meta["objects"], Mapping) or not isinstance(meta["view_sets"], list):
+        raise DatasetFormatError(
+            f"{path}: 'objects' must be a JSON object and 'view_sets' a list, got "
+            f"{type(meta['objects']).__name__} and {type(meta['view_sets']).__name__}"
+        )
+    if check_names:
+        bad = unsafe_names(meta, path)
+        if bad:
+            raise bad[0]
     return meta
 
 
 def _record(root: Path, key: str, info: Mapping, view_sets: list[str], source: Path) -> ObjectRecord:
-    category, sep, object_id = key.partition("/")
-    if not sep or not category or not object_id:
-        raise DatasetFormatError(f"{source}: object key {key!r} is not '<category>/<object_id>'")
+    category, object_id = check_object_key(key, source=source, entry="object key")
     split = info.get("split")
     if split not in SPLITS:
         raise DatasetFormatError(f"{source}: object {key!r} has split {split!r}, expected one of {SPLITS}")
@@ -246,8 +321,10 @@ def scan_dataset(root: str | Path, *, check_files: bool = False) -> list[ObjectR
         degrees) of every view set of ``metadata.json``.
 
     Raises:
-        DatasetFormatError: see :func:`load_metadata`; an object entry is malformed (bad key, split or view
+        DatasetFormatError: see :func:`load_metadata`; an object entry is malformed (bad split or view
             set); or a listed file is missing (``check_files``).
+        UnsafeNameError: an object key or view-set name is not a plain path component (see
+            :func:`unsafe_names`), checked before any object is read.
 
     Example::
 
@@ -274,6 +351,7 @@ def read_object(root: str | Path, category: str, object_id: str) -> ObjectRecord
 
     Raises:
         DatasetFormatError: the dataset is incomplete or does not list ``<category>/<object_id>``.
+        UnsafeNameError: a name of ``metadata.json`` is not a plain path component.
     """
     root = Path(root)
     meta = load_metadata(root)
@@ -284,9 +362,12 @@ def read_object(root: str | Path, category: str, object_id: str) -> ObjectRecord
 
 
 def dataset_summary(root: str | Path) -> str:
-    """A table of object counts per category and split, plus the build options and failures."""
+    """A table of object counts per category and split, plus the build options and failures.
+
+    It joins no name to a path, so it reads a ``metadata.json`` with unsafe names too (``--verify`` lists them).
+    """
     root = Path(root)
-    meta = load_metadata(root)
+    meta = load_metadata(root, check_names=False)
     counts: dict[str, dict[str, int]] = {}
     for key, info in meta["objects"].items():
         row = counts.setdefault(key.split("/", 1)[0], dict.fromkeys(SPLITS, 0))

@@ -85,6 +85,7 @@ from lightning_vtr.data.dataset import _transform
 from lightning_vtr.data.format import DatasetFormatError
 from lightning_vtr.data.shapenet_rendering import _load_split_file
 from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.utils.paths import check_name, check_no_case_collisions, check_relative_path
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
 __all__ = [
@@ -277,11 +278,16 @@ def _record(root: Path, index: int, entry: Any, annotations: Path) -> Pix3DRecor
         if focal <= 0:
             raise DatasetFormatError(f"{where}: key 'focal_length' must be a positive number (mm), got {focal!r}")
     flags = {k: _flag(entry.get(k, False), where, k) for k in _HIDDEN}
+    # Every name becomes a path: the files read stay under `root`, the outputs written for them under theirs.
+    for key in ("img", "mask", "voxel"):
+        check_relative_path(str(entry[key]), source=where, entry=f"key {key!r}")
     image = Path(str(entry["img"]))
     voxel = Path(str(entry["voxel"]))
+    category = check_name(str(entry["category"]), source=where, entry="key 'category'")
+    check_name(image.stem, source=where, entry="image name (key 'img')")
     return Pix3DRecord(
         index=index,
-        category=str(entry["category"]),
+        category=category,
         object_id=image.stem,
         model_id=voxel.parent.name,
         image_path=root / image,
@@ -353,6 +359,7 @@ def read_pix3d(
     if not isinstance(entries, list):
         raise DatasetFormatError(f"{path} must hold a list of records, got {type(entries).__name__}")
     records = [_record(root, i, entry, path) for i, entry in enumerate(entries)]
+    check_no_case_collisions(list(dict.fromkeys(r.key for r in records)), source=path, entry="photograph")
     if categories is not None:
         known = sorted({r.category for r in records})
         unknown = sorted(set(categories) - set(known))

@@ -42,6 +42,7 @@ import numpy as np
 
 from lightning_vtr.data.format import SHAPENET_SYNSETS, SPLITS, DatasetFormatError, ObjectRecord
 from lightning_vtr.geometry import wrap_yaw
+from lightning_vtr.utils.paths import check_name, check_no_case_collisions
 from lightning_vtr.utils.validation import check_choice
 
 __all__ = [
@@ -116,6 +117,15 @@ def _load_split_file(path: Path) -> list[dict]:
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "taxonomy_id" not in entry:
             raise DatasetFormatError(f"The split file {path}: entry {i} has no 'taxonomy_id'")
+        # Every name becomes a path component (of the inputs read and of the outputs written for them).
+        check_name(str(entry["taxonomy_id"]), source=path, entry=f"entry {i} taxonomy_id")
+        if entry.get("taxonomy_name"):
+            check_name(str(entry["taxonomy_name"]), source=path, entry=f"entry {i} taxonomy_name")
+        for split in SPLITS:
+            models = [str(m) for m in entry.get(split) or ()]
+            for model in models:
+                check_name(model, source=path, entry=f"{entry['taxonomy_id']} {split} model")
+            check_no_case_collisions(models, source=path, entry=f"{entry['taxonomy_id']} {split} model")
     return entries
 
 

@@ -25,7 +25,8 @@ from PIL import Image
 from tqdm.auto import tqdm
 
 from lightning_vtr.data.binvox import read_binvox
-from lightning_vtr.data.format import SPLITS, image_path, load_metadata, object_dir
+from lightning_vtr.data.format import SPLITS, image_path, load_metadata, object_dir, unsafe_names
+from lightning_vtr.utils.paths import UnsafeNameError, check_name, check_no_case_collisions
 from lightning_vtr.utils.validation import check_int
 
 __all__ = ["PROBLEM_KINDS", "DatasetProblem", "VerifyReport", "verify_dataset"]
@@ -39,6 +40,7 @@ PROBLEM_KINDS: tuple[str, ...] = (
     "view_count",
     "voxel_resolution",
     "inconsistent",
+    "unsafe_name",
 )
 
 #: Problems an error message lists before it says how many more there are.
@@ -51,7 +53,9 @@ class DatasetProblem:
 
     Attributes:
         path: the file (or directory) at fault.
-        kind: one of :data:`PROBLEM_KINDS`.
+        kind: one of :data:`PROBLEM_KINDS`; ``"unsafe_name"``: a category, object id or view-set name that is
+            not a plain path component (the message names the entry and the rule it breaks, see
+            :mod:`lightning_vtr.utils.paths`).
         message: what is wrong with it.
         expected: the value ``metadata.json`` implies (``None`` when there is no single value).
         actual: the value found.
@@ -169,20 +173,24 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
         check_int("workers", workers, minimum=1)
     start = time.perf_counter()
     root = Path(root)
-    meta = load_metadata(root)
+    meta = load_metadata(root, check_names=False)
     views_per_set = meta.get("views_per_set")
+    # An unsafe name is reported, never joined to a path: its objects and view sets are not read.
+    unsafe = unsafe_names(meta, root / "metadata.json")
+    bad_names = {err.name for err in unsafe}
     expected = _Expected(
         root=root,
         metadata=root / "metadata.json",
         image_size=int(meta["image_size"]),
         resolution=int(meta["resolution"]),
-        view_sets=tuple(meta["view_sets"]),
+        view_sets=tuple(name for name in meta["view_sets"] if name not in bad_names),
         views_per_set=int(views_per_set) if views_per_set is not None else None,
     )
-    objects = list(meta["objects"].items())
+    objects = [(key, info) for key, info in meta["objects"].items() if key not in bad_names]
 
     # 2. check the objects in parallel, in metadata order
-    report = VerifyReport(root=root, objects=len(objects))
+    report = VerifyReport(root=root, objects=len(meta["objects"]))
+    report.problems.extend(_unsafe_problem(err) for err in unsafe)
     report.problems.extend(_check_splits(root, meta))
     bar = tqdm(total=len(objects), desc=f"verifying {root.name}", unit="obj", disable=not progress, dynamic_ncols=True)
     for problems, files in _map_objects(expected, objects, workers or _usable_cpus()):
@@ -192,6 +200,11 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
     bar.close()
     report.seconds = time.perf_counter() - start
     return report
+
+
+def _unsafe_problem(err: UnsafeNameError) -> DatasetProblem:
+    """An ``"unsafe_name"`` problem from the error of a name check."""
+    return DatasetProblem(Path(err.source), "unsafe_name", f"{err.entry} {err.name!r}: {err.reason}")
 
 
 def _usable_cpus() -> int:
@@ -226,15 +239,9 @@ def _map_objects(
 def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[DatasetProblem], int]:
     """The problems of one object of ``metadata.json`` and the number of files read."""
     problems: list[DatasetProblem] = []
-    category, sep, object_id = key.partition("/")
-    if not sep or not category or not object_id or not isinstance(info, Mapping):
-        problems.append(
-            DatasetProblem(
-                expected.metadata,
-                "metadata",
-                f"object entry {key!r} is not '<category>/<object_id>' with a dict of fields",
-            )
-        )
+    category, _, object_id = key.partition("/")  # a safe key (verify_dataset left the others out)
+    if not isinstance(info, Mapping):
+        problems.append(DatasetProblem(expected.metadata, "metadata", f"object entry {key!r} is not a dict of fields"))
         return problems, 0
     if info.get("split") not in SPLITS:
         problems.append(
@@ -280,16 +287,29 @@ def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
     except (OSError, ValueError) as err:
         return [DatasetProblem(path, "unreadable", f"cannot read splits.json: {err}")]
     listed: dict[str, str] = {}
+    unsafe: list[DatasetProblem] = []
     if isinstance(splits, Mapping):
         for category, parts in splits.items():
+            try:
+                check_name(category, source=path, entry="category")
+            except UnsafeNameError as err:
+                unsafe.append(_unsafe_problem(err))
             for split, ids in parts.items() if isinstance(parts, Mapping) else ():
                 for oid in ids if isinstance(ids, list) else ():
+                    try:
+                        check_name(oid, source=path, entry=f"object id of {category!r}")
+                    except UnsafeNameError as err:
+                        unsafe.append(_unsafe_problem(err))
                     listed[f"{category}/{oid}"] = split
+        try:
+            check_no_case_collisions(listed, source=path, entry="object")
+        except UnsafeNameError as err:
+            unsafe.append(_unsafe_problem(err))
     if not isinstance(splits, Mapping) or (not listed and meta["objects"]):
         return [
             DatasetProblem(path, "unreadable", "splits.json must map categories to {split: [object ids]}", None, None)
         ]
-    problems = []
+    problems = unsafe
     for key, info in meta["objects"].items():
         split = info.get("split") if isinstance(info, Mapping) else None
         if split in SPLITS and key in listed and listed[key] != split:  # other faults are metadata.json's
@@ -310,6 +330,8 @@ def _check_object_json(directory: Path, category: str, object_id: str) -> list[D
         return [DatasetProblem(path, "missing", "the object's object.json does not exist")]
     try:
         own = read_object_json(directory)
+    except UnsafeNameError as err:
+        return [_unsafe_problem(err)]
     except DatasetFormatError as err:
         return [DatasetProblem(path, "unreadable", f"invalid object.json: {err}")]
     problems = []

@@ -42,6 +42,7 @@ from lightning_vtr.errors import DataError
 from lightning_vtr.models.registry import checkpoint_hyperparameters
 from lightning_vtr.renderer import composite
 from lightning_vtr.selection.error_guided import ErrorGuidedSelector
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.visualize import object_sheet
 
 __all__ = [
@@ -398,7 +399,7 @@ def prediction_sheet(result: dict[str, Any], threshold: float, panel_size: int) 
     selected = None
     if result["target"] is not None:
         generator = torch.Generator().manual_seed(0)
-        selected = ErrorGuidedSelector().select(
+        selected = ErrorGuidedSelector.paper().select(
             result["predicted"][None],
             result["target"][None].float(),
             [result.get("category", "object")],
@@ -459,7 +460,11 @@ def export_predictions(
     for result in results:
         sheet = prediction_sheet(result, threshold, panel_size) if sheets else None
         files = export.export_prediction(
-            out / result["name"], result["predicted"], threshold=threshold, mesh_format=mesh_format, sheet=sheet
+            join_under(out, result["name"]),
+            result["predicted"],
+            threshold=threshold,
+            mesh_format=mesh_format,
+            sheet=sheet,
         )
         facts = export.prediction_facts(result["predicted"], result["target"], threshold)
         yield {"name": result["name"], "files": files, "facts": facts}

@@ -18,6 +18,7 @@ import numpy as np
 
 from lightning_vtr.evaluation.robustness import RobustnessMap
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_int
 
 __all__ = ["plot_difference", "plot_map", "write_index_html"]
@@ -194,6 +195,42 @@ def _file_stem(name: str) -> str:
     return stem or "map"
 
 
+def _text_html(text: str) -> str:
+    """HTML for ``text``: each run of Markdown pipe-table lines (``| a | b |``, its ``|---|`` rule dropped) a
+    ``<table>`` whose first row is the header, each other paragraph a ``<p>``; every cell and line escaped."""
+    blocks: list[str] = []
+    table: list[list[str]] = []
+    paragraph: list[str] = []
+
+    def flush() -> None:
+        if table:
+            head, *body = table
+            rows = ["<tr>" + "".join(f"<th>{html.escape(cell)}</th>" for cell in head) + "</tr>"]
+            rows += ["<tr>" + "".join(f"<td>{html.escape(cell)}</td>" for cell in row) + "</tr>" for row in body]
+            blocks.append("<table>\n" + "\n".join(rows) + "\n</table>")
+            table.clear()
+        if paragraph:
+            blocks.append(f"<p>{html.escape(' '.join(paragraph))}</p>")
+            paragraph.clear()
+
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("|") and stripped.endswith("|") and len(stripped) > 1:
+            if paragraph:
+                flush()
+            cells = [cell.strip() for cell in stripped[1:-1].split("|")]
+            if not all(set(cell) <= set(":-") and cell for cell in cells):  # not the |---| rule
+                table.append(cells)
+        elif stripped:
+            if table:
+                flush()
+            paragraph.append(stripped)
+        else:
+            flush()
+    flush()
+    return "\n".join(blocks)
+
+
 def write_index_html(
     out: str | Path,
     maps: Mapping[str, RobustnessMap],
@@ -212,7 +249,8 @@ def write_index_html(
         maps: name -> map; the names title the pictures and name the files (``<name>.png``).
         reference: the name of the map the others are compared with (``None``: no difference maps).
         title: the page title.
-        sections: heading -> preformatted text (a Markdown table, say) shown below the pictures, in order.
+        sections: heading -> text shown below the pictures, in order: its Markdown pipe tables become HTML
+            tables, its other paragraphs HTML paragraphs (every cell and line escaped).
 
     Returns:
         The path of ``index.html``, written last and atomically (a page that is there is whole).
@@ -234,7 +272,7 @@ def write_index_html(
     vmin, vmax = shared_limits(maps)
     rows, figures = [], []
     for name, rmap in maps.items():
-        png = plot_map(rmap, directory / f"{_file_stem(name)}.png", title=name, vmin=vmin, vmax=vmax)
+        png = plot_map(rmap, join_under(directory, f"{_file_stem(name)}.png"), title=name, vmin=vmin, vmax=vmax)
         means = rmap.mean()
         worst, best = int(np.nanargmin(means)), int(np.nanargmax(means))
         rows.append(
@@ -249,13 +287,11 @@ def write_index_html(
             diff = plot_difference(
                 rmap,
                 maps[reference],
-                directory / f"{_file_stem(name)}_minus_{_file_stem(reference)}.png",
+                join_under(directory, f"{_file_stem(name)}_minus_{_file_stem(reference)}.png"),
                 title=f"{name} - {reference}",
             )
             figures.append(f'<figure><img src="{html.escape(diff.name)}" alt="{html.escape(diff.stem)}"></figure>')
-    extra = [
-        f"<h2>{html.escape(heading)}</h2>\n<pre>{html.escape(text)}</pre>" for heading, text in (sections or {}).items()
-    ]
+    extra = [f"<h2>{html.escape(heading)}</h2>\n{_text_html(text)}" for heading, text in (sections or {}).items()]
     first = next(iter(maps.values()))
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>{html.escape(title)}</title>

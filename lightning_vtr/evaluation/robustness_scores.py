@@ -25,6 +25,7 @@ from lightning_vtr.geometry import check_bin_interval
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.selection.error_guided import OBJECT_SCORES, ErrorGuidedSelector
+from lightning_vtr.selection.scores import InputScore
 from lightning_vtr.utils.validation import check_choice, check_int, check_probabilities
 
 __all__ = ["bce_per_object", "selection_scores", "validity_table"]
@@ -149,7 +150,9 @@ def selection_scores(
         out: dict[str, np.ndarray] = {}
         for name in scores:
             score: Any = name  # one of OBJECT_SCORES, checked above
-            selector = ErrorGuidedSelector(k=k, score=score, threshold=threshold, model_batch_size=batch_size)
+            if name == "input":
+                score = InputScore(model_batch_size=batch_size)
+            selector = ErrorGuidedSelector(score=score, k=k, threshold=threshold)
             out[name] = selector.score_views(predicted, target, context if name == "input" else None).double().numpy()
     finally:
         if hasattr(model, "train"):

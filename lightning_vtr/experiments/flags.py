@@ -67,7 +67,9 @@ def _argument(f: dataclasses.Field, hint: Any, value: Any) -> dict[str, Any]:
         kwargs["default"] = list(value)
         return kwargs
     if hint is bool:
-        raise TypeError(f"field {f.name!r}: a bool flag is not supported; use a choice")
+        if value is not False:
+            raise TypeError(f"field {f.name!r}: a bool flag must default to False (a switch), got {value!r}")
+        return {"dest": f.name, "help": help_text, "action": "store_true", "default": False}
     if spec["minimum"] is not None:
         kwargs["type"] = at_least(spec["minimum"])
     elif hint in (int, float):
@@ -98,8 +100,10 @@ def add_config_arguments(
     Returns:
         The added actions, in field order.
 
+    A bool field defaulting to ``False`` is a switch (``store_true``).
+
     Raises:
-        TypeError: a flag field is a bool (use a field with choices).
+        TypeError: a bool flag field whose default is not ``False``.
 
     Example::
 

@@ -11,12 +11,12 @@ import pickle
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from lightning_vtr.evaluation.tables import BEST_IOU
 from lightning_vtr.experiments.config import ExperimentConfig, flag
-from lightning_vtr.experiments.strategies import STRATEGIES, VARIANTS
-from lightning_vtr.utils.validation import check_choice, check_int, check_type
+
+if TYPE_CHECKING:
+    from lightning_vtr.experiments.strategies import StrategyVariant
 
 __all__ = [
     "ABLATIONS",
@@ -26,15 +26,13 @@ __all__ = [
     "METRICS",
     "PITCH_BANDS",
     "REPORT_EXPERIMENT",
-    "STRATEGIES",
-    "STRATEGY_TITLES",
+    "STRATEGIES",  # noqa: F822  (module __getattr__: read on first use)
+    "STRATEGY_TITLES",  # noqa: F822
     "ReportConfig",
     "auto_jobs",
     "default_experiment",
 ]
 
-STRATEGY_TITLES: dict[str, str] = {name: variant.title for name, variant in VARIANTS.items()}
-"""Row titles of the tables, per strategy name of :data:`~lightning_vtr.experiments.strategies.VARIANTS`."""
 MAIN_STRATEGIES: tuple[str, ...] = ("none", "random", "error_guided", "paper")
 """The report's default rows: no augmentation, angle-uniform random views, the callback's default and the
 paper's exact rule. Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is opt-in."""
@@ -44,8 +42,9 @@ ABLATIONS: tuple[str, ...] = ("k", "pool", "single_view")
 """The ablations of the error-guided method the report can run (none by default)."""
 PITCH_BANDS: tuple[int, ...] = (-90, -60, -30, 0, 30, 60, 90)
 """Pitch bands (degrees) of the view-distribution table and chart."""
-METRICS: tuple[str, ...] = ("iou@0.4", BEST_IOU, "fscore")
-"""The metrics of Table 1, ``results.csv`` and ``differences.csv``."""
+METRICS: tuple[str, ...] = ("iou@0.4", "iou_best", "fscore")
+"""The metrics of Table 1, ``results.csv`` and ``differences.csv`` (``"iou_best"`` is
+:data:`lightning_vtr.evaluation.tables.BEST_IOU`, written out so that ``--help`` imports no torch)."""
 MAIN_K = 30
 """The paper's bin interval K (degrees); the ``"error_guided"`` run uses it."""
 REPORT_EXPERIMENT: dict[str, Any] = {
@@ -121,8 +120,12 @@ class ReportConfig:
             ``pretrain_epochs`` and ``finetune_epochs`` of at least 1.
         seeds: one full comparison per seed (pretraining included); several give means with 95 %
             confidence intervals and paired differences.
-        strategies: the rows, names of :data:`~lightning_vtr.experiments.strategies.VARIANTS` (default
-            :data:`MAIN_STRATEGIES`).
+        strategies: the rows, names of :attr:`variants` (default :data:`MAIN_STRATEGIES`).
+        strategies_file: a YAML file of strategy rows of your own
+            (:func:`~lightning_vtr.experiments.strategies.load_variants`; a row's selector a registry name or
+            ``{class_path, init_args}``), added to the shipped rows (a row with a shipped row's name replaces it);
+            ``None``: the shipped rows.
+        only_strategies_file: use the rows of ``strategies_file`` alone, not the shipped ones.
         ablations: which of :data:`ABLATIONS` to run (default none; they add the "error_guided" run, and
             ``single_view`` the "none" run, when ``strategies`` lacks them).
         k_values: bin intervals of the K ablation, degrees (each must divide 180).
@@ -161,9 +164,18 @@ class ReportConfig:
     )
     strategies: Sequence[str] = field(
         default=MAIN_STRATEGIES,
+        metadata=flag("comma-separated rows (--list-strategies lists them)", comma_separated=True),
+    )
+    strategies_file: str | None = field(
+        default=None,
         metadata=flag(
-            "comma-separated rows (--list-strategies lists them)", choices=lambda: tuple(VARIANTS), comma_separated=True
+            "a YAML file of your strategy rows (selector: a registry name or {class_path, init_args}), added to "
+            "the shipped rows; name them in --strategies",
+            default_text="the shipped rows only",
         ),
+    )
+    only_strategies_file: bool = field(
+        default=False, metadata=flag("use the --strategies-file rows alone, not the shipped ones")
     )
     ablations: Sequence[str] = field(
         default=(),
@@ -198,6 +210,8 @@ class ReportConfig:
     )
 
     def __post_init__(self) -> None:
+        from lightning_vtr.utils.validation import check_choice, check_int, check_type
+
         check_type("experiment", self.experiment, ExperimentConfig)
         for name in ("pretrain_epochs", "finetune_epochs"):
             check_int(f"experiment.{name}", getattr(self.experiment, name), minimum=1)
@@ -207,17 +221,20 @@ class ReportConfig:
         self.k_values = [check_int("k_values", k, minimum=1) for k in self.k_values]
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"`seeds` must be a non-empty list of distinct seeds, got {self.seeds}")
+        if self.only_strategies_file and self.strategies_file is None:
+            raise ValueError("`only_strategies_file` needs a `strategies_file`")
+        variants = self.variants
         if not self.strategies:
-            raise ValueError(f"`strategies` must name at least one of {list(VARIANTS)}, got []")
+            raise ValueError(f"`strategies` must name at least one of {list(variants)}, got []")
         for strategy in self.strategies:
-            check_choice("strategies", strategy, VARIANTS)
+            check_choice("strategies", strategy, variants)
         for ablation in self.ablations:
             check_choice("ablations", ablation, ABLATIONS)
         bad = [k for k in self.k_values if 180 % k]
         if bad:
             raise ValueError(f"`k_values` must divide 180 (degrees), got {bad}")
         for strategy in self.selector_kwargs:
-            check_choice("selector_kwargs", strategy, VARIANTS)
+            check_choice("selector_kwargs", strategy, variants)
         if self.validation_repeats is not None:
             check_int("validation_repeats", self.validation_repeats, minimum=1)
         if check_int("jobs", self.jobs, minimum=1) > 1:
@@ -234,6 +251,41 @@ class ReportConfig:
                     f"cannot be pickled ({error}); use jobs=1"
                 ) from error
 
+    @property
+    def variants(self) -> dict[str, StrategyVariant]:
+        """The named strategies the rows come from: the shipped rows and ``strategies_file``'s
+        (:func:`~lightning_vtr.experiments.strategies.report_variants`), read once per file."""
+        return _variants(self.strategies_file, self.only_strategies_file)
+
+    def titles(self) -> dict[str, str]:
+        """Row title per strategy name of :attr:`variants`."""
+        return {name: variant.title for name, variant in self.variants.items()}
+
     def seed_config(self, seed: int) -> ExperimentConfig:
         """The :class:`~lightning_vtr.experiments.config.ExperimentConfig` of every run of ``seed``."""
         return replace(self.experiment, seed=seed, out=str(Path(self.experiment.out) / f"seed_{seed}"))
+
+
+_VARIANTS_READ: dict[tuple[str | None, bool], dict[str, StrategyVariant]] = {}
+
+
+def _variants(path: str | None, only: bool) -> dict[str, StrategyVariant]:
+    from lightning_vtr.experiments.strategies import report_variants
+
+    key = (None if path is None else str(Path(path).expanduser().resolve()), only)
+    if key not in _VARIANTS_READ:
+        _VARIANTS_READ[key] = report_variants(path, replace=only)
+    return _VARIANTS_READ[key]
+
+
+def __getattr__(name: str) -> Any:
+    # the shipped rows import the selectors (torch): read on first use, so `lightning-vtr report --help` stays light
+    if name == "STRATEGY_TITLES":
+        from lightning_vtr.experiments.strategies import VARIANTS
+
+        return {key: variant.title for key, variant in VARIANTS.items()}
+    if name == "STRATEGIES":
+        from lightning_vtr.experiments import strategies
+
+        return strategies.STRATEGIES
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -12,7 +12,6 @@ from typing import Any
 
 from lightning_vtr.experiments import training
 from lightning_vtr.experiments.report_config import MAIN_K, ReportConfig
-from lightning_vtr.experiments.strategies import VARIANTS
 
 __all__ = ["ReportRun", "plan_runs"]
 
@@ -23,7 +22,7 @@ class ReportRun:
 
     Attributes:
         name: the run's directory and its ``run`` in ``results.csv``.
-        strategy: a name of :data:`~lightning_vtr.experiments.strategies.VARIANTS`.
+        strategy: a name of the report's :attr:`~lightning_vtr.experiments.report_config.ReportConfig.variants`.
         selector_kwargs, callback_kwargs: the run's arguments over the strategy's.
         single_view_of: the fine-tuned run a single-view evaluation tests; ``None`` for a fine-tuning.
         same_as: an earlier run whose selector and callback resolve to the same arguments; ``None`` if none.
@@ -43,7 +42,7 @@ class ReportRun:
 
 
 def plan_runs(config: ReportConfig) -> list[ReportRun]:
-    """Every run of one seed, in execution order (the order of ``VARIANTS``, then the ablations), once each.
+    """Every run of one seed, in execution order (the order of ``config.variants``, then the ablations), once each.
 
     Args:
         config: the report's strategies, ablations, K values and arguments.
@@ -61,8 +60,9 @@ def plan_runs(config: ReportConfig) -> list[ReportRun]:
         strategies.append("error_guided")
     if "single_view" in config.ablations and "none" not in strategies:
         strategies.insert(0, "none")
-    base = {s: dict(config.selector_kwargs.get(s, {})) for s in VARIANTS}
-    runs = [ReportRun(s, s, base[s]) for s in VARIANTS if s in strategies]
+    variants = config.variants
+    base = {s: dict(config.selector_kwargs.get(s, {})) for s in variants}
+    runs = [ReportRun(s, s, base[s]) for s in variants if s in strategies]
     if "k" in config.ablations:
         runs += [
             ReportRun(f"error_guided_k{k}", "error_guided", {**base["error_guided"], "k": k})
@@ -83,7 +83,9 @@ def _merge_identical(runs: list[ReportRun], config: ReportConfig) -> list[Report
     for run in runs:
         if run.single_view_of is None:
             callback_kwargs = {**config.callback_kwargs, **run.callback_kwargs}
-            resolved = training.resolved_strategy(run.strategy, run.selector_kwargs, callback_kwargs)
+            resolved = training.resolved_strategy(
+                run.strategy, run.selector_kwargs, callback_kwargs, variants=config.variants
+            )
             key = json.dumps(resolved, sort_keys=True, default=repr)
             if key in seen:
                 run = replace(run, same_as=seen[key])

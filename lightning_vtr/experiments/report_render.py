@@ -9,7 +9,7 @@ import shlex
 from dataclasses import dataclass
 from typing import Any
 
-from lightning_vtr.experiments.report_config import BASELINES, MAIN_K, METRICS, STRATEGY_TITLES, ReportConfig
+from lightning_vtr.experiments.report_config import BASELINES, MAIN_K, METRICS, ReportConfig
 from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.experiments.report_run import ReportResults
 from lightning_vtr.experiments.report_tables import (
@@ -21,7 +21,6 @@ from lightning_vtr.experiments.report_tables import (
     view_table,
 )
 from lightning_vtr.experiments.report_timing import time_tables
-from lightning_vtr.experiments.strategies import VARIANTS
 
 __all__ = ["ReportSummary", "equivalent_command", "render_markdown", "summarize"]
 
@@ -64,7 +63,8 @@ def summarize(config: ReportConfig, results: ReportResults) -> ReportSummary:
         The :class:`ReportSummary`.
     """
     seeds = list(config.seeds)
-    rows = {STRATEGY_TITLES[s]: s for s in VARIANTS if s in config.strategies}
+    titles = config.titles()
+    rows = {titles[s]: s for s in config.variants if s in config.strategies}
     baselines = [b for b in BASELINES if b in rows.values()]
     differences = {b: paired_differences(rows, b, results.payloads, "iou@0.4", seeds) for b in baselines}
     validation_differences = {}
@@ -151,13 +151,12 @@ def _main_table(
         (run.strategy, run.same_as) for run in runs if run.same_as is not None and run.name in summary.rows.values()
     ]
     strategy_of = {run.name: run.strategy for run in runs}
+    titles = config.titles()
     if merged:
         sections += [
             "",
             "Rows fitted once because their selector and callback arguments are identical: "
-            + "; ".join(
-                f"{STRATEGY_TITLES[strategy]} = {STRATEGY_TITLES[strategy_of[same_as]]}" for strategy, same_as in merged
-            )
+            + "; ".join(f"{titles[strategy]} = {titles[strategy_of[same_as]]}" for strategy, same_as in merged)
             + ".",
         ]
     return sections
@@ -176,7 +175,7 @@ def _difference_sections(config: ReportConfig, summary: ReportSummary) -> list[s
     for heading, note, tables in headed:
         for baseline, by_title in tables.items():
             if by_title:
-                title = STRATEGY_TITLES[baseline]
+                title = config.titles()[baseline]
                 sections += ["", "## " + heading.format(baseline=title), "", note.format(baseline=title), ""]
                 sections.append(difference_table(by_title))
     return sections
@@ -223,6 +222,10 @@ def equivalent_command(config: ReportConfig) -> str:
     words += ["--out", exp.out, "--seeds", *map(str, config.seeds)]
     words += ["--pretrain-epochs", str(exp.pretrain_epochs), "--finetune-epochs", str(exp.finetune_epochs)]
     words += ["--strategies", ",".join(config.strategies), "--fraction", str(exp.fraction)]
+    if config.strategies_file is not None:
+        words += ["--strategies-file", str(config.strategies_file)]
+        if config.only_strategies_file:
+            words.append("--only-strategies-file")
     words += ["--test-repeats", str(exp.test_repeats)]
     if exp.finetune_lr != "cosine":
         words += ["--finetune-lr", exp.finetune_lr]

@@ -19,6 +19,7 @@ from lightning_vtr.experiments.config import ExperimentConfig
 from lightning_vtr.experiments.report_config import ReportConfig
 from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import join_under
 
 __all__ = ["ReportResults", "execute_runs", "read_json", "single_view", "write_json"]
 
@@ -81,7 +82,7 @@ def _run_seed(config: ReportConfig, runs: list[ReportRun], seed: int, results: R
             payloads[run.name][seed] = single_view(run, seed_exp, payloads[run.single_view_of][seed])
         else:
             payloads[run.name][seed], validated = _fit_and_validate(config, seed_exp, pretrained, run)
-            views[run.name][seed] = _selection_view_sets(Path(seed_exp.out) / run.name)
+            views[run.name][seed] = _selection_view_sets(join_under(seed_exp.out, run.name))
             if validated is not None:
                 validation[run.name][seed] = {"results": validated}
 
@@ -99,10 +100,11 @@ def _fit_and_validate(
         synthesizer=config.synthesizer,
         selector_kwargs=run.selector_kwargs,
         callback_kwargs={**config.callback_kwargs, **run.callback_kwargs},
+        variants=config.variants,
     )
     if config.validation_repeats is None:
         return payload, None
-    return payload, training.validate_run(seed_exp, Path(seed_exp.out) / run.name, config.validation_repeats)
+    return payload, training.validate_run(seed_exp, join_under(seed_exp.out, run.name), config.validation_repeats)
 
 
 @contextlib.contextmanager
@@ -129,7 +131,7 @@ def _log_handlers_to(stream: Any) -> Any:
 
 
 def _log_path(config: ReportConfig, seed: int, run: ReportRun | None) -> Path:
-    return Path(config.seed_config(seed).out) / "logs" / f"{'pretrain' if run is None else run.name}.log"
+    return join_under(config.seed_config(seed).out, "logs", f"{'pretrain' if run is None else run.name}.log")
 
 
 def _fit_unit(config: ReportConfig, seed: int, run: ReportRun | None, threads: int) -> float:
@@ -216,7 +218,7 @@ def read_json(path: Path) -> dict | None:
 def single_view(run: ReportRun, exp: ExperimentConfig, source: dict) -> dict:
     """Test the fine-tuned model of ``run.single_view_of`` with 1 input view; cached in ``results.json``."""
     assert run.single_view_of is not None, "single_view tests single-view runs only"
-    run_dir = Path(exp.out) / run.name
+    run_dir = join_under(exp.out, run.name)
     result_file = run_dir / "results.json"
     if result_file.is_file():
         return json.loads(result_file.read_text())

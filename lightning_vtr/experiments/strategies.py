@@ -1,17 +1,28 @@
 """The named view strategies of the harness, read from a YAML file of rows (``strategies.yaml``).
 
-Each row names a selector of :data:`lightning_vtr.selection.SELECTORS` (or none), the arguments of the selector
-and of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, a title and a description.
-:data:`VARIANTS` holds the rows of the file shipped with the package (:data:`STRATEGIES_FILE`), in the
-report's row order; :func:`load_variants` reads and validates any such file. Example row::
+Each row names a selector of :data:`lightning_vtr.selection.SELECTORS`, a selector class of your own by import path,
+or none; the arguments of the selector and of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, a title
+and a description. :data:`VARIANTS` holds the rows of the file shipped with the package (:data:`STRATEGIES_FILE`), in
+the report's row order; :func:`load_variants` reads and validates any such file and :func:`report_variants` merges a
+file of yours with the shipped rows. Example rows::
 
     visible_fresh:
       title: Visible, 20 % fresh
       description: visible score, 20 % of the objects given views per selection, the latest selection kept
       selector: error_guided
-      selector_kwargs: {score: visible, min_separation: 30.0}
+      selector_kwargs: {score: visible, min_separation: 30.0, temperature: null}
       callback_kwargs: {fraction: 0.2}
       max_samples_fraction: 0.2   # generated samples kept: 20 % of the training objects' count
+    mine:
+      title: My selector
+      description: my own rule
+      selector:                   # jsonargparse's form: any ViewSelector subclass, the working folder importable
+        class_path: my_selectors.FarthestViews
+        init_args: {k: 30}
+      callback_kwargs: {fraction: 0.2}
+
+A row's ``selector`` is a registry name (its arguments in ``selector_kwargs``) or ``{class_path, init_args}``
+(``selector_kwargs`` then adds to ``init_args``).
 """
 
 from __future__ import annotations
@@ -21,12 +32,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.errors import DataError
-from lightning_vtr.selection import SELECTORS
-from lightning_vtr.utils.validation import check_choice
 
 __all__ = [
     "STRATEGIES",
@@ -35,6 +43,8 @@ __all__ = [
     "StrategyFileError",
     "StrategyVariant",
     "load_variants",
+    "report_variants",
+    "selector_class",
 ]
 
 STRATEGIES_FILE = Path(__file__).with_name("strategies.yaml")
@@ -55,10 +65,12 @@ class StrategyFileError(DataError):
 
 @dataclass(frozen=True)
 class StrategyVariant:
-    """A named view strategy: a selector of :data:`lightning_vtr.selection.SELECTORS` and its settings.
+    """A named view strategy: a selector (registered or your own) and its settings.
 
     Attributes:
-        selector: the selector's registry name; ``None`` for no augmentation (no callback).
+        selector: the selector's registry name (:data:`lightning_vtr.selection.SELECTORS`) or the import path
+            ``module.Class`` of a :class:`~lightning_vtr.selection.ViewSelector` subclass; ``None`` for no
+            augmentation (no callback).
         selector_kwargs: arguments of the selector class.
         callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`.
         title: the row title in the report's tables.
@@ -67,7 +79,8 @@ class StrategyVariant:
             objects (the callback's ``max_samples`` is :meth:`max_samples` of the dataset's count); ``None``: no cap.
 
     Raises:
-        ValueError: ``selector`` is not a registered selector, or ``max_samples_fraction`` is not in (0, 1].
+        ValueError: ``selector`` is neither a registered selector nor an importable ``ViewSelector`` class, or
+            ``max_samples_fraction`` is not in (0, 1].
 
     Example::
 
@@ -83,7 +96,7 @@ class StrategyVariant:
 
     def __post_init__(self) -> None:
         if self.selector is not None:
-            check_choice("selector", self.selector, SELECTORS)
+            selector_class(self.selector)
         share = self.max_samples_fraction
         if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 < share <= 1):
             raise ValueError(f"`max_samples_fraction` must be a number in (0, 1], got {share!r}")
@@ -107,6 +120,66 @@ class StrategyVariant:
         if self.max_samples_fraction is None:
             return None
         return max(1, round(self.max_samples_fraction * train_objects))
+
+
+#: The pool keys of a row's ``callback_kwargs`` (the callback itself takes one ``pool`` object):
+#: ``use_pool`` (default: the selector's ``uses_pool``), ``pool_capacity`` (``None``), ``pool_refresh`` (``False``)
+#: and ``pool_prefer_others`` (``True``).
+POOL_KEYS = ("use_pool", "pool_capacity", "pool_refresh", "pool_prefer_others")
+
+
+def callback_arguments(uses_pool: bool, callback_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """A row's ``callback_kwargs`` (with ``fraction``) as arguments of ``ErrorGuidedViewAugmentation``.
+
+    Rows keep the paper's callback settings unless they say otherwise: ``search_fraction`` missing or ``None``
+    searches as many objects as get views (``fraction``), and the :data:`POOL_KEYS` become one ``pool`` mapping
+    (``None`` without a pool).
+
+    Example:
+        >>> callback_arguments(True, {"fraction": 0.1, "pool_refresh": True})
+        {'fraction': 0.1, 'search_fraction': 0.1, 'pool': {'capacity': None, 'refresh': True, 'prefer_others': True}}
+    """
+    options = {k: v for k, v in callback_kwargs.items() if k not in POOL_KEYS}
+    if options.get("search_fraction") is None:
+        options["search_fraction"] = options["fraction"]
+    use_pool = callback_kwargs.get("use_pool")
+    if use_pool if use_pool is not None else uses_pool:
+        options["pool"] = {
+            "capacity": callback_kwargs.get("pool_capacity"),
+            "refresh": bool(callback_kwargs.get("pool_refresh") or False),
+            "prefer_others": bool(callback_kwargs.get("pool_prefer_others", True)),
+        }
+    else:
+        options["pool"] = None
+    return options
+
+
+def selector_class(name: str, where: str = "selector") -> type:
+    """The selector class a row names: a key of :data:`lightning_vtr.selection.SELECTORS` or an import path
+    ``module.Class`` of a :class:`~lightning_vtr.selection.ViewSelector` subclass (the working folder importable).
+
+    Raises:
+        ValueError: neither (a :class:`~lightning_vtr.errors.UsageError` naming ``where`` and the problem).
+
+    Example:
+        >>> selector_class("random").__name__
+        'RandomSelector'
+    """
+    from lightning_vtr.errors import UsageError
+    from lightning_vtr.models.registry import import_class
+    from lightning_vtr.selection import SELECTORS, ViewSelector
+
+    if name in SELECTORS:
+        return SELECTORS[name]
+    if "." not in name:
+        raise UsageError(
+            f"{where}: unknown selector {name!r} (expected null, one of {', '.join(map(repr, SELECTORS))}, or "
+            "{class_path: module.Class, init_args: {...}})"
+        )
+    cls = import_class(name, where)
+    if not issubclass(cls, ViewSelector):
+        raise UsageError(f"{where}: {name} is not a lightning_vtr.selection.ViewSelector subclass")
+    return cls
 
 
 def _parameters(cls: type) -> set[str] | None:
@@ -138,11 +211,27 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
     for key in ("title", "description"):
         if not isinstance(row[key], str) or not row[key].strip():
             raise StrategyFileError(f"{where}: `{key}` must be a non-empty string, got {row[key]!r}")
+    from lightning_vtr.callback import ErrorGuidedViewAugmentation
+
     selector = row["selector"]
-    if selector is not None and selector not in SELECTORS:
+    init_args: dict[str, Any] = {}
+    if isinstance(selector, dict):
+        _unknown(f"{where}, selector", selector, {"class_path", "init_args"})
+        if not isinstance(selector.get("class_path"), str):
+            raise StrategyFileError(f"{where}: `selector` needs a `class_path` string (module.Class), got {selector!r}")
+        init_args = selector.get("init_args") or {}
+        if not isinstance(init_args, dict):
+            raise StrategyFileError(f"{where}: `selector.init_args` must be a mapping, got {type(init_args).__name__}")
+        selector = selector["class_path"]
+    if selector is not None and not isinstance(selector, str):
         raise StrategyFileError(
-            f"{where}: unknown selector {selector!r} (expected null or one of {', '.join(map(repr, SELECTORS))})"
+            f"{where}: `selector` must be null, a name or {{class_path, init_args}}, got {selector!r}"
         )
+    if selector is not None:
+        try:
+            cls = selector_class(selector, where)
+        except ValueError as error:
+            raise StrategyFileError(str(error)) from None
     for key in ("selector_kwargs", "callback_kwargs"):
         value = row.get(key, {})
         if not isinstance(value, dict):
@@ -150,18 +239,21 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
         if value and selector is None:
             raise StrategyFileError(f"{where}: `{key}` needs a selector (this row has none)")
     if selector is not None:
-        _unknown(f"{where}, selector_kwargs", row.get("selector_kwargs", {}), _parameters(SELECTORS[selector]))
+        selector_kwargs = {**init_args, **row.get("selector_kwargs", {})}
+        label = "selector_kwargs" if not init_args else "selector init_args / selector_kwargs"
+        _unknown(f"{where}, {label}", selector_kwargs, _parameters(cls))
         callback_kwargs = row.get("callback_kwargs", {})
         for key, reason in _RESERVED_CALLBACK_KEYS.items():
             if key in callback_kwargs:
                 raise StrategyFileError(f"{where}, callback_kwargs: {key!r} is not allowed ({reason})")
-        _unknown(f"{where}, callback_kwargs", callback_kwargs, _parameters(ErrorGuidedViewAugmentation))
+        known = (_parameters(ErrorGuidedViewAugmentation) or set()) - {"pool"} | set(POOL_KEYS)
+        _unknown(f"{where}, callback_kwargs", callback_kwargs, known)
     elif row.get("max_samples_fraction") is not None:
         raise StrategyFileError(f"{where}: `max_samples_fraction` needs a selector (this row has none)")
     try:
         return StrategyVariant(
             selector,
-            row.get("selector_kwargs", {}),
+            {**init_args, **row.get("selector_kwargs", {})},
             row.get("callback_kwargs", {}),
             title=row["title"].strip(),
             description=" ".join(row["description"].split()),
@@ -221,12 +313,76 @@ def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVaria
     return variants
 
 
-VARIANTS: dict[str, StrategyVariant] = load_variants()
-"""Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
-The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
-callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``)."""
+def report_variants(path: str | Path | None = None, *, replace: bool = False) -> dict[str, StrategyVariant]:
+    """The report's named strategies: the shipped rows (:data:`VARIANTS`) and those of a file of yours.
+
+    Args:
+        path: a strategies file (:func:`load_variants`); ``None``: the shipped rows alone.
+        replace: use the file's rows alone; ``False``: the shipped rows, then the file's (a row of the file with a
+            shipped row's name takes its place).
+
+    Returns:
+        Name -> :class:`StrategyVariant`, in row order.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        StrategyFileError: as :func:`load_variants`, or a row of the file repeats a shipped row's title.
+
+    Example::
+
+        variants = report_variants("my_strategies.yaml")  # shipped rows + mine
+    """
+    if path is None:
+        return dict(_shipped())
+    file = Path(path).expanduser()
+    if not file.is_file():
+        found = "a folder" if file.is_dir() else "no such file"
+        raise FileNotFoundError(
+            f"`--strategies-file` must be a YAML file of strategy rows, got {str(path)!r} ({found})"
+        )
+    mine = load_variants(file)
+    if replace:
+        return mine
+    merged = {**_shipped(), **mine}
+    titles = [v.title for v in merged.values()]
+    repeated = sorted({t for t in titles if titles.count(t) > 1})
+    if repeated:
+        raise StrategyFileError(
+            f"{file}: title(s) {', '.join(map(repr, repeated))} repeat a shipped row's; choose another title, or "
+            "use the shipped row's name to replace it"
+        )
+    return merged
+
+
 DEFAULT_STRATEGY = "visible_tau10_search"
 """The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments (the examples' "Ours")."""
-STRATEGIES: tuple[str, ...] = ("none", *SELECTORS)
-"""The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
-:data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`."""
+_LAZY: dict[str, Any] = {}
+
+
+def _shipped() -> dict[str, StrategyVariant]:
+    """The rows of :data:`STRATEGIES_FILE`, read once."""
+    if "VARIANTS" not in _LAZY:
+        _LAZY["VARIANTS"] = load_variants()
+    return _LAZY["VARIANTS"]
+
+
+def __getattr__(name: str) -> Any:
+    # VARIANTS and STRATEGIES import the selectors (torch): read on first use, so `lightning-vtr report --help`
+    # stays light.
+    if name == "VARIANTS":
+        return _shipped()
+    if name == "STRATEGIES":
+        from lightning_vtr.selection import SELECTORS
+
+        return ("none", *SELECTORS)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+if TYPE_CHECKING:
+    VARIANTS: dict[str, StrategyVariant]
+    """Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
+    The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
+    callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``)."""
+    STRATEGIES: tuple[str, ...]
+    """The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
+    :data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`."""

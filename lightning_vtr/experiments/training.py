@@ -14,7 +14,7 @@ import math
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
@@ -23,10 +23,16 @@ from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation.tables import results_from_test_output
 from lightning_vtr.experiments.config import FINETUNE_LR_SCHEDULES, ExperimentConfig
-from lightning_vtr.experiments.strategies import STRATEGIES, VARIANTS, StrategyVariant
+from lightning_vtr.experiments.strategies import (
+    STRATEGIES,
+    VARIANTS,
+    StrategyVariant,
+    callback_arguments,
+    selector_class,
+)
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
-from lightning_vtr.models.registry import MODELS
+from lightning_vtr.models.registry import MODELS, check_model, model_class
 from lightning_vtr.selection import SELECTORS, make_selector
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.validation import check_choice, check_int
@@ -235,8 +241,10 @@ _WEIGHT_ARGUMENTS = ("backbone_weights", "pretrained_encoder")
 checkpoint instead, so it neither re-reads nor needs those files."""
 
 
-def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelReconstructionModule:
-    """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``.
+def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> L.LightningModule:
+    """The model :data:`MODELS` registers as ``config.model``, built with ``preset`` and ``model_kwargs``; a class
+    path ``module.Class`` (any ``LightningModule`` with the protocol's members and its own ``training_step`` and
+    ``configure_optimizers``) is built with ``model_kwargs`` alone.
 
     ``fine_tuning=True`` builds the model a pretrained checkpoint is loaded into: without the weight-file
     arguments (the checkpoint holds those weights), and Pix2Vox++ with ``BCE(refined)`` only, as VTR fine-tunes
@@ -247,29 +255,31 @@ def make_model(config: ExperimentConfig, *, fine_tuning: bool = False) -> VoxelR
         fine_tuning: build the model a pretrained checkpoint is loaded into (see above).
 
     Returns:
-        A new :class:`~lightning_vtr.models.base.VoxelReconstructionModule` with its initial weights.
+        A new model with its initial weights.
 
     Raises:
-        ValueError: ``config.model`` is not in :data:`MODELS`.
+        ValueError: ``config.model`` is neither in :data:`MODELS` nor an importable class path, or the class lacks
+            a member of the protocol (:class:`~lightning_vtr.errors.UsageError`, naming what is missing).
 
     Example:
         >>> model = make_model(ExperimentConfig(model="pix2vox", preset="tiny"))
         >>> type(model).__name__, model.num_views, model.image_size
         ('Pix2VoxPlusPlus', 3, 64)
     """
-    model_class = MODELS[check_choice("model", config.model, MODELS)]
+    if config.model not in MODELS:
+        cls = model_class(config.model, "model", training=True)
+        return check_model(cls(**config.model_kwargs))
+    model_class_ = MODELS[config.model]
     kwargs = dict(config.model_kwargs)
     if fine_tuning:
         for name in _WEIGHT_ARGUMENTS:
             kwargs.pop(name, None)
-        if issubclass(model_class, Pix2VoxPlusPlus):
+        if issubclass(model_class_, Pix2VoxPlusPlus):
             kwargs.setdefault("two_stage_loss", False)
-    return model_class(preset=config.preset, **kwargs)
+    return model_class_(preset=config.preset, **kwargs)
 
 
-def make_datamodule(
-    config: ExperimentConfig, model: VoxelReconstructionModule, num_views: int | None = None
-) -> VTRDataModule:
+def make_datamodule(config: ExperimentConfig, model: L.LightningModule, num_views: int | None = None) -> VTRDataModule:
     """The experiment's datamodule.
 
     Args:
@@ -286,16 +296,25 @@ def make_datamodule(
         >>> dm.num_views, dm.batch_size
         (1, 4)
     """
+    recipe = config.recipe
+    if recipe == "reference":
+        declared = getattr(type(model), "image_recipe", None)
+        if not isinstance(declared, str):
+            raise ValueError(
+                f"`recipe` 'reference' takes the model class's `image_recipe`, which {type(model).__name__} does not "
+                "define; give a named recipe (plain, pix2vox, lrgt)"
+            )
+        recipe = declared
     return VTRDataModule(
         config.data,
-        num_views=num_views or model.num_views,
-        image_size=config.image_size or model.image_size,
+        num_views=num_views or int(cast(Any, model).num_views),
+        image_size=config.image_size or int(cast(Any, model).image_size),
         batch_size=config.batch_size,
         num_workers=config.num_workers,
         seed=config.seed,
         test_repeats=config.test_repeats,
         embedded=config.embedded,
-        recipe=type(model).image_recipe if config.recipe == "reference" else config.recipe,
+        recipe=recipe,
     )
 
 
@@ -366,7 +385,33 @@ def evaluate(
 
     silence_lightning_tips()
     trainer = L.Trainer(**kwargs)
-    return results_from_test_output(trainer.test(model, datamodule=dm, verbose=False))
+    tested = model if isinstance(model, VoxelReconstructionModule) else ProtocolTester(model)
+    return results_from_test_output(trainer.test(tested, datamodule=dm, verbose=False))
+
+
+class ProtocolTester(VoxelReconstructionModule):
+    """Any model with ``predict_voxels`` tested as the package's models are: IoU and F-score per view set and
+    category, logged under the same keys, so a model of your own gets the same columns in every table.
+
+    Args:
+        model: a ``LightningModule`` with ``predict_voxels``, ``image_size``, ``num_views`` and
+            ``voxel_resolution``.
+
+    Example::
+
+        L.Trainer().test(ProtocolTester(my_model), datamodule=dm)
+    """
+
+    def __init__(self, model: L.LightningModule) -> None:
+        declared = cast(Any, model)  # the protocol's attributes, which LightningModule does not declare
+        super().__init__(int(declared.image_size), int(declared.num_views), int(declared.voxel_resolution))
+        self.model = model
+
+    def reconstruct(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"voxels": cast(Any, self.model).predict_voxels(images)}
+
+    def loss(self, outputs: dict[str, torch.Tensor], target: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError("ProtocolTester only tests")
 
 
 def pretrain(config: ExperimentConfig) -> Path:
@@ -489,12 +534,17 @@ def make_strategy(
     variant = variants[check_choice("name", name, variants)]
     if variant.selector is None:
         return None
-    selector = make_selector(variant.selector, **{**variant.selector_kwargs, **(selector_kwargs or {})})
+    arguments = {**variant.selector_kwargs, **(selector_kwargs or {})}
+    if variant.selector in SELECTORS:
+        selector = make_selector(variant.selector, **arguments)
+    else:
+        selector = selector_class(variant.selector)(**arguments)
     options = {"fraction": config.fraction, "seed": config.seed, **variant.callback_kwargs, **(callback_kwargs or {})}
     if variant.max_samples_fraction is not None and "max_samples" not in options:
         options["max_samples"] = variant.max_samples(
             training_objects(config) if train_objects is None else train_objects
         )
+    options = callback_arguments(selector.uses_pool, options)
     return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
 
 
@@ -536,21 +586,22 @@ def resolved_strategy(
     variant = variants[check_choice("name", name, variants)]
     if variant.selector is None:
         return None
-    selector_class = SELECTORS[variant.selector]
-    selector = inspect.signature(selector_class).bind_partial(**{**variant.selector_kwargs, **(selector_kwargs or {})})
+    cls = selector_class(variant.selector)
+    selector = inspect.signature(cls).bind_partial(**{**variant.selector_kwargs, **(selector_kwargs or {})})
     selector.apply_defaults()
     options = {**variant.callback_kwargs, **(callback_kwargs or {})}
     capped = variant.max_samples_fraction is not None and "max_samples" not in options
-    callback = inspect.signature(ErrorGuidedViewAugmentation).bind_partial(**options)
+    options.setdefault("fraction", inspect.signature(ErrorGuidedViewAugmentation).parameters["fraction"].default)
+    callback = inspect.signature(ErrorGuidedViewAugmentation).bind_partial(
+        **callback_arguments(bool(cast(Any, cls).uses_pool), options)
+    )
     callback.apply_defaults()
-    arguments = {k: v for k, v in callback.arguments.items() if k not in ("selector", "synthesizer")}
-    if arguments.get("use_pool") is None:  # the callback's default: the selector's preference
-        arguments["use_pool"] = selector_class.uses_pool
-    # the callback's defaults for a selector it is given: search as many as given views, keep the pool
-    if arguments.get("search_fraction") is None:
-        arguments["search_fraction"] = arguments["fraction"]
-    if arguments.get("pool_refresh") is None:
-        arguments["pool_refresh"] = False
+    arguments = {k: v for k, v in callback.arguments.items() if k not in ("selector", "synthesizer", "pool")}
+    pool = callback.arguments["pool"] or {}  # in the rows' vocabulary (strategies.POOL_KEYS)
+    arguments["use_pool"] = bool(pool)
+    arguments["pool_capacity"] = pool.get("capacity", options.get("pool_capacity"))
+    arguments["pool_refresh"] = pool.get("refresh", bool(options.get("pool_refresh") or False))
+    arguments["pool_prefer_others"] = pool.get("prefer_others", bool(options.get("pool_prefer_others", True)))
     if capped:
         arguments["max_samples_fraction"] = variant.max_samples_fraction
     return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
@@ -575,6 +626,7 @@ def run_strategy(
     synthesizer: Any = None,
     selector_kwargs: dict[str, Any] | None = None,
     callback_kwargs: dict[str, Any] | None = None,
+    variants: dict[str, StrategyVariant] | None = None,
 ) -> dict:
     """Fine-tune the pretrained model with one view strategy and test it; cached in ``results.json``.
 
@@ -592,6 +644,7 @@ def run_strategy(
         synthesizer: the callback's synthesizer when ``callback`` is ``None`` (``None``: mesh rendering).
         selector_kwargs: as for :func:`make_strategy`, when ``callback`` is ``None``.
         callback_kwargs: as for :func:`make_strategy`, when ``callback`` is ``None``.
+        variants: the named strategies ``name`` is looked up in; default :data:`VARIANTS`.
 
     Returns:
         The ``results.json`` payload: ``strategy``, ``config``, ``train_seconds`` (the fit),
@@ -631,7 +684,7 @@ def run_strategy(
     model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
     dm = make_datamodule(config, model)
     if callback is None:
-        callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs)
+        callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs, variants=variants)
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=run_dir / "checkpoints", save_last=True)
     timer = StageTimer()
     callbacks = [timer, *timer.bracket(callback), checkpoints]
@@ -658,7 +711,7 @@ def run_strategy(
     return payload
 
 
-def load_run_model(config: ExperimentConfig, run_dir: Path) -> VoxelReconstructionModule:
+def load_run_model(config: ExperimentConfig, run_dir: Path) -> L.LightningModule:
     """The experiment's model with the final weights of a fitted run (``run_dir/checkpoints/last.ckpt``).
 
     Args:

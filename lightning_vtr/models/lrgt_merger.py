@@ -81,7 +81,9 @@ def merge_tokens(x: Tensor, assignment: Tensor, scores: Tensor, num_clusters: in
 
     Cluster ``m`` becomes ``sum_i exp(s_i) x_i / (sum_i exp(s_i) + 1e-6)`` over its members ``i``
     (the released code's formula, the 1e-6 included). It is computed with each cluster's largest
-    score subtracted, which changes nothing but cannot overflow. Differentiable in ``x`` and ``scores``.
+    score subtracted, which changes nothing but cannot overflow. Differentiable in ``x`` and ``scores``. The
+    weights and sums are computed in float32 (float64 if either input is float64) whatever the dtypes of ``x``
+    and ``scores`` (e.g. half-precision scores from a Linear under autocast); the result has ``x``'s dtype.
 
     Args:
         x: tokens ``(B, N, D)``.
@@ -89,6 +91,9 @@ def merge_tokens(x: Tensor, assignment: Tensor, scores: Tensor, num_clusters: in
             cluster must have at least one member.
         scores: token scores ``s`` ``(B, N)``.
         num_clusters: ``M``.
+
+    Returns:
+        The merged tokens ``(B, M, D)`` in ``x``'s dtype.
     """
     _check_tokens("x", x)
     b, n, dim = x.shape
@@ -99,13 +104,17 @@ def merge_tokens(x: Tensor, assignment: Tensor, scores: Tensor, num_clusters: in
         )
     m = num_clusters
     flat = (assignment + torch.arange(b, device=x.device)[:, None] * m).flatten()
-    s = scores.flatten()
+    # Weights and sums in float32 at least, whatever the inputs' dtypes: under autocast the scores come from a
+    # Linear in half precision while exp() and the normalised tokens are float32 (CUDA's rules), and index_add_ (in
+    # place, never autocast) needs one dtype; a half-precision sum over a cluster's members would lose precision.
+    acc = torch.promote_types(torch.promote_types(x.dtype, scores.dtype), torch.float32)
+    s = scores.flatten().to(acc)
     # A constant shift per cluster: detaching it leaves the function, and so its gradient, exact.
     shift = s.new_full((b * m,), -math.inf).scatter_reduce(0, flat, s, "amax").detach()
     w = torch.exp(s - shift[flat])
     den = s.new_zeros(b * m).index_add_(0, flat, w) + _MERGE_EPS * torch.exp(-shift)
-    num = x.new_zeros(b * m, dim).index_add_(0, flat, w[:, None].to(x.dtype) * x.reshape(b * n, dim))
-    return (num / den[:, None].to(x.dtype)).reshape(b, m, dim)
+    num = s.new_zeros(b * m, dim).index_add_(0, flat, w[:, None] * x.reshape(b * n, dim).to(acc))
+    return (num / den[:, None]).to(x.dtype).reshape(b, m, dim)
 
 
 class SimilarTokenMergerBlock(nn.Module):

@@ -21,6 +21,7 @@ from urllib.parse import unquote, urlparse
 import torch
 from torch import Tensor
 
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_choice, check_type
 
 __all__ = [
@@ -108,7 +109,7 @@ def fetch_weights(
         return path
     cache_dir = weights_cache_dir()
     name = os.path.basename(unquote(urlparse(source).path))
-    cached = cache_dir / name
+    cached = join_under(cache_dir, name)
     if cached.is_file():
         return cached
     match = _HASH_IN_NAME.search(name) if check_hash else None

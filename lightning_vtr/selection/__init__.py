@@ -3,38 +3,47 @@
 from __future__ import annotations
 
 from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_categories
+from lightning_vtr.selection.bins import nearest_bins, sample_around_bins, select_views, top_bins
 from lightning_vtr.selection.differentiable_projection import soft_error_projection
 from lightning_vtr.selection.error_guided import ErrorGuidedSelector
 from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.nature import NatureSelector
 from lightning_vtr.selection.plots import plot_error_projections, plot_pool_distribution
 from lightning_vtr.selection.pool import ViewpointPool
-from lightning_vtr.selection.projection import (
-    check_volume_pair,
-    check_volumes,
-    error_projection,
-    error_volume,
-    nearest_bins,
-    projection_scores,
-    sample_around_bins,
-    select_views,
-    top_bins,
-    view_scores,
-)
+from lightning_vtr.selection.projection import error_projection, projection_scores, view_scores, visible_error_scores
 from lightning_vtr.selection.random_selector import RandomSelector
 from lightning_vtr.selection.registry import SELECTORS, make_selector
+from lightning_vtr.selection.scores import (
+    SCORES,
+    InputScore,
+    MapScore,
+    PaperScore,
+    ProjectionScore,
+    ReleasedScore,
+    ViewScore,
+    VisibleScore,
+)
 from lightning_vtr.selection.viat import VIATSelector
+from lightning_vtr.selection.volumes import check_volume_pair, check_volumes, error_volume
 
 __all__ = [
+    "SCORES",
     "SELECTORS",
     "ErrorGuidedSelector",
+    "InputScore",
     "MVTNSelector",
+    "MapScore",
     "NatureSelector",
+    "PaperScore",
+    "ProjectionScore",
     "RandomSelector",
+    "ReleasedScore",
     "SelectionContext",
     "VIATSelector",
+    "ViewScore",
     "ViewSelector",
     "ViewpointPool",
+    "VisibleScore",
     "check_categories",
     "check_volume_pair",
     "check_volumes",
@@ -50,4 +59,5 @@ __all__ = [
     "soft_error_projection",
     "top_bins",
     "view_scores",
+    "visible_error_scores",
 ]

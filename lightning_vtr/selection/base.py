@@ -188,6 +188,28 @@ class ViewSelector(abc.ABC):
             ``(B, num_views, 2)`` (yaw, pitch) in degrees.
         """
 
+    def settings(self) -> dict[str, Any]:
+        """The effective settings of this selector, by constructor argument name.
+
+        Every value is a plain JSON value (number, string, bool, ``None``, list, or a dict of them), with every
+        default resolved, so that two selectors with equal settings (and the same class) select alike. The class
+        name is not included. A subclass returns all of its constructor arguments; this base returns none.
+
+        Returns:
+            ``{argument: value}``, in constructor order.
+
+        Example:
+            >>> from lightning_vtr.selection import RandomSelector
+            >>> RandomSelector(num_views=2).settings()
+            {'num_views': 2, 'mode': 'area', 'yaw_range': [-180.0, 180.0], 'pitch_range': [-90.0, 90.0]}
+        """
+        return {}
+
+    def __repr__(self) -> str:
+        """``ClassName(arg=value, ...)`` from :meth:`settings`."""
+        items = ", ".join(f"{name}={value!r}" for name, value in self.settings().items())
+        return f"{type(self).__name__}({items})"
+
     def state_dict(self) -> dict[str, Any]:
         """Learned state to checkpoint (empty for stateless selectors)."""
         return {}

@@ -10,6 +10,7 @@ by :func:`~lightning_vtr.selection.differentiable_projection.soft_error_projecti
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import torch
@@ -72,20 +73,23 @@ class MVTNSelector(ViewSelector):
     used. With DDP each rank trains on its own objects unless the caller merges states.
 
     Args:
-        num_views: views per object.
-        base_yaw: the views' base yaws in degrees (default evenly spaced from 0: 0 / 120 / 240).
-        base_pitch: base elevation in degrees, in ``(-90, 90)``.
-        max_yaw_offset: bound of the yaw offset in degrees (default ``180 / num_views``).
-        steps: Adam steps per ``select`` call.
-        lr: Adam learning rate.
-        input: ``"error"`` (the error volume) or ``"predicted"`` (the prediction) fed to the network.
-        threshold: binarisation threshold of the prediction for the error volume
-            (:data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`).
-        density: sharpness of the soft projection (opacity per voxel of error crossed).
-        image_size: side of the projected maps (default ``R``).
-        width: channels of the first convolution (the second has ``2 * width``).
-        hidden: width of the hidden layer of the MLP head.
-        seed: seed of the network's initialisation.
+        base_yaw: ``(0.0, 120.0, 240.0)`` (default): the views' base yaws in degrees, one per view;
+            :meth:`evenly_spaced` builds them for another number of views.
+        base_pitch: ``30.0`` (default): base elevation in degrees, in ``(-90, 90)``.
+        max_yaw_offset: ``60.0`` (default: half the spacing of the default base yaws, so the views keep
+            their sectors): bound of the yaw offset in degrees.
+        steps: ``10`` (default): Adam steps per ``select`` call.
+        lr: ``0.01`` (default): Adam learning rate.
+        input: ``"error"`` (default: the error volume) or ``"predicted"`` (the prediction): what the
+            network reads.
+        threshold: ``0.4`` (default, :data:`~lightning_vtr.protocol.DEFAULT_THRESHOLD`): binarisation
+            threshold of the prediction for the error volume.
+        density: ``5.0`` (default): sharpness of the soft projection, opacity per voxel of error crossed.
+        image_size: ``None`` (default: the side ``R`` of the volumes given to :meth:`select`): side of the
+            projected maps in pixels.
+        width: ``8`` (default): channels of the first convolution (the second has ``2 * width``).
+        hidden: ``64`` (default): width of the hidden layer of the MLP head.
+        seed: ``0`` (default): seed of the network's initialisation.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
@@ -110,10 +114,9 @@ class MVTNSelector(ViewSelector):
 
     def __init__(
         self,
-        num_views: int = 3,
-        base_yaw: list[float] | None = None,
+        base_yaw: Sequence[float] = (0.0, 120.0, 240.0),
         base_pitch: float = 30.0,
-        max_yaw_offset: float | None = None,
+        max_yaw_offset: float = 60.0,
         steps: int = 10,
         lr: float = 1e-2,
         input: Literal["error", "predicted"] = "error",
@@ -124,21 +127,16 @@ class MVTNSelector(ViewSelector):
         hidden: int = 64,
         seed: int = 0,
     ) -> None:
-        num_views = check_int("num_views", num_views, minimum=1)
         steps = check_int("steps", steps, minimum=0)
         width = check_int("width", width, minimum=1)
         hidden = check_int("hidden", hidden, minimum=1)
-        if base_yaw is None:
-            base_yaw = [i * 360.0 / num_views for i in range(num_views)]
-        else:
-            values = base_yaw.tolist() if isinstance(base_yaw, Tensor) else base_yaw
-            base_yaw = [check_float(f"base_yaw[{i}]", yaw) for i, yaw in enumerate(values)]
-        if len(base_yaw) != num_views:
-            raise ValueError(f"`base_yaw` must hold num_views={num_views} angles (degrees), got {len(base_yaw)}")
+        values = base_yaw.tolist() if isinstance(base_yaw, Tensor) else list(base_yaw)
+        base_yaw = [check_float(f"base_yaw[{i}]", yaw) for i, yaw in enumerate(values)]
+        if not base_yaw:
+            raise ValueError("`base_yaw` must hold one angle (degrees) per view, got none")
+        num_views = len(base_yaw)
         # open interval: the pitch is reparameterised through atanh(base_pitch / 90)
         base_pitch = check_float("base_pitch", base_pitch, minimum=-90.0, maximum=90.0, min_open=True, max_open=True)
-        if max_yaw_offset is None:
-            max_yaw_offset = 180.0 / num_views
         max_yaw_offset = check_float("max_yaw_offset", max_yaw_offset, minimum=0.0, maximum=180.0)
         self.num_views = num_views
         self.base_yaw = torch.tensor(base_yaw, dtype=torch.float32)
@@ -151,10 +149,44 @@ class MVTNSelector(ViewSelector):
         self.density = check_float("density", density, minimum=0.0, min_open=True)
         self.image_size = None if image_size is None else check_int("image_size", image_size, minimum=1)
         seed = check_int("seed", seed)
+        self.width, self.hidden, self.seed = width, hidden, seed
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.network = _ViewRegressor(num_views, width, hidden)
         self.optimizer = torch.optim.Adam(self.network.parameters(), lr=lr)
+
+    @classmethod
+    def evenly_spaced(cls, num_views: int, **kwargs: Any) -> MVTNSelector:
+        """``num_views`` base yaws evenly spaced from 0 degrees, each free to move half the spacing.
+
+        Args:
+            num_views: views per object.
+            **kwargs: the other constructor arguments.
+
+        Example:
+            >>> MVTNSelector.evenly_spaced(4).settings()["base_yaw"], MVTNSelector.evenly_spaced(4).max_yaw_offset
+            ([0.0, 90.0, 180.0, 270.0], 45.0)
+        """
+        num_views = check_int("num_views", num_views, minimum=1)
+        spacing = 360.0 / num_views
+        return cls(base_yaw=[i * spacing for i in range(num_views)], max_yaw_offset=spacing / 2, **kwargs)
+
+    def settings(self) -> dict[str, Any]:
+        """Every constructor argument (see :meth:`ViewSelector.settings`)."""
+        return {
+            "base_yaw": [float(yaw) for yaw in self.base_yaw.tolist()],
+            "base_pitch": self.base_pitch,
+            "max_yaw_offset": self.max_yaw_offset,
+            "steps": self.steps,
+            "lr": self.lr,
+            "input": self.input,
+            "threshold": self.threshold,
+            "density": self.density,
+            "image_size": self.image_size,
+            "width": self.width,
+            "hidden": self.hidden,
+            "seed": self.seed,
+        }
 
     # ------------------------------------------------------------------------------------ public API
     def select(
@@ -256,7 +288,7 @@ class MVTNSelector(ViewSelector):
             self.network.load_state_dict(state["network"])
         except RuntimeError as err:
             raise ValueError(
-                "MVTNSelector state does not fit this network (was it saved with other num_views / width / hidden?): "
+                "MVTNSelector state does not fit this network (was it saved with another number of base yaws, width or hidden?): "
                 f"{err}"
             ) from err
         if "optimizer" in state:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -26,10 +27,10 @@ class NatureSelector(ViewSelector):
     (``uses_pool = False``).
 
     Args:
-        num_views: viewpoints per object.
-        pitch: natural pitch, or ``{category: pitch}``.
-        pitch_jitter: half-width of the uniform pitch spread, ``>= 0``.
-        yaw_range: ``(low, high)`` yaw in degrees, within [-180, 180].
+        num_views: ``3`` (default): viewpoints per object.
+        pitch: ``0.0`` (default): natural pitch in degrees, or ``{category: pitch}`` (missing categories: 0).
+        pitch_jitter: ``0.0`` (default): half-width of the uniform pitch spread, ``>= 0``.
+        yaw_range: ``(-180.0, 180.0)`` (default): ``(low, high)`` yaw in degrees, within [-180, 180].
 
     Raises:
         TypeError: an argument of the wrong type (e.g. a pitch that is not a number).
@@ -97,8 +98,12 @@ class NatureSelector(ViewSelector):
         pitch = clamp_pitch(centre + self.pitch_jitter * draw[..., 1] / 90.0)
         return torch.stack([draw[..., 0], pitch], dim=-1).to(predicted.device)
 
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(num_views={self.num_views}, pitch={self.pitch!r}, "
-            f"pitch_jitter={self.pitch_jitter}, yaw_range={self.yaw_range})"
-        )
+    def settings(self) -> dict[str, Any]:
+        """``num_views``, ``pitch`` (a number or ``{category: pitch}``), ``pitch_jitter`` and ``yaw_range``."""
+        pitch = dict(self.pitch) if isinstance(self.pitch, dict) else self.pitch
+        return {
+            "num_views": self.num_views,
+            "pitch": pitch,
+            "pitch_jitter": self.pitch_jitter,
+            "yaw_range": list(self.yaw_range),
+        }

@@ -32,7 +32,9 @@ class ViewpointPool:
     requesting object, among those; if the category is
     empty or unknown, ``num_views`` uniform viewpoints (``fallback`` mode). With a ``capacity``, each
     category keeps its ``capacity`` most recent sets (first in, first out), so old selections made by an
-    earlier model age out.
+    earlier model age out. With ``refresh``, the selection round of
+    :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation` empties the pool before it adds the round's sets,
+    so the pool holds only what the current model gets wrong.
 
     Everything is deterministic given a seeded ``torch.Generator``: one ``randint`` draw per sample from a
     non-empty category, ``sample_uniform_viewpoints`` otherwise. :meth:`state_dict` /
@@ -43,6 +45,8 @@ class ViewpointPool:
         num_views: ``n``, the size of every view set.
         fallback: uniform sampler for empty categories: ``"area"`` (uniform on the sphere) or ``"angle"``.
         prefer_others: draw from sets found on other objects of the category when there are any.
+        refresh: empty the pool at the start of every selection round (:meth:`start_round`); ``False`` keeps every
+            earlier round's sets (the paper's pool).
 
     Raises:
         TypeError: ``capacity`` or ``num_views`` is not an int.
@@ -65,11 +69,13 @@ class ViewpointPool:
         num_views: int = 3,
         fallback: Literal["area", "angle"] = "area",
         prefer_others: bool = True,
+        refresh: bool = False,
     ) -> None:
         self.capacity = None if capacity is None else check_int("capacity", capacity, minimum=1)
         self.num_views = check_int("num_views", num_views, minimum=1)
         self.fallback = check_choice("fallback", fallback, ("area", "angle"))
         self.prefer_others = check_type("prefer_others", prefer_others, bool)
+        self.refresh = check_type("refresh", refresh, bool)
         # category -> list of (object id, (n, 2) float32 view set), oldest first
         self._entries: OrderedDict[str, list[tuple[str, Tensor]]] = OrderedDict()
 
@@ -92,6 +98,11 @@ class ViewpointPool:
     def clear(self) -> None:
         """Forget every stored set (a pool rebuilt each epoch from the current model starts here)."""
         self._entries.clear()
+
+    def start_round(self) -> None:
+        """Called before a selection round adds its sets: :meth:`clear` with ``refresh``, nothing otherwise."""
+        if self.refresh:
+            self.clear()
 
     def extend(self, categories: list[str], object_ids: list[str], viewpoints: Tensor) -> None:
         """:meth:`add` a batch: ``viewpoints (B, num_views, 2)`` with ``B`` categories and object ids."""
@@ -119,11 +130,25 @@ class ViewpointPool:
         """Total number of stored view sets."""
         return sum(len(sets) for sets in self._entries.values())
 
+    def settings(self) -> dict[str, Any]:
+        """The constructor arguments, JSON-serialisable: ``capacity``, ``num_views``, ``fallback``,
+        ``prefer_others``, ``refresh``.
+
+        Example:
+            >>> ViewpointPool(refresh=True).settings()
+            {'capacity': None, 'num_views': 3, 'fallback': 'area', 'prefer_others': True, 'refresh': True}
+        """
+        return {
+            "capacity": self.capacity,
+            "num_views": self.num_views,
+            "fallback": self.fallback,
+            "prefer_others": self.prefer_others,
+            "refresh": self.refresh,
+        }
+
     def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(capacity={self.capacity}, num_views={self.num_views}, "
-            f"prefer_others={self.prefer_others}, sets={len(self)})"
-        )
+        """``ViewpointPool(capacity=None, num_views=3, ...)``: the settings (the stored sets are not shown)."""
+        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in self.settings().items())})"
 
     # ------------------------------------------------------------------------------------ sampling
     def sample(self, category: str, object_id: str | None = None, generator: torch.Generator | None = None) -> Tensor:

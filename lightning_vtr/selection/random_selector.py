@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -18,16 +18,16 @@ __all__ = ["RandomSelector"]
 class RandomSelector(ViewSelector):
     """Uniformly random viewpoints ("standard data augmentation with random viewpoints" in the paper).
 
-    The paper's range is pitch in [-90, 90] and yaw in [-180, 180] (degrees). ``mode="angle"`` draws yaw
-    and pitch uniformly in their ranges (dense near the poles on the sphere); ``mode="area"`` is uniform
-    over the covered patch of the sphere. Predictions and targets are only checked, never used, and the
-    selections are trained on directly (``uses_pool = False``).
+    The paper's range is pitch in [-90, 90] and yaw in [-180, 180] (degrees). ``RandomSelector()`` is uniform
+    over the covered patch of the sphere (``mode="area"``); the paper's Random, ``RandomSelector(mode="angle")``,
+    draws yaw and pitch uniformly in their ranges (dense near the poles on the sphere). Predictions and
+    targets are only checked, never used, and the selections are trained on directly (``uses_pool = False``).
 
     Args:
-        num_views: viewpoints per object.
-        mode: ``"angle"`` or ``"area"``.
-        yaw_range: ``(low, high)`` yaw in degrees, within [-180, 180].
-        pitch_range: ``(low, high)`` pitch in degrees, within [-90, 90].
+        num_views: ``3`` (default): viewpoints per object.
+        mode: ``"area"`` (default: uniform on the sphere) or ``"angle"`` (uniform yaw and pitch).
+        yaw_range: ``(-180.0, 180.0)`` (default): ``(low, high)`` yaw in degrees, within [-180, 180].
+        pitch_range: ``(-90.0, 90.0)`` (default): ``(low, high)`` pitch in degrees, within [-90, 90].
 
     Raises:
         TypeError: an argument of the wrong type (e.g. a range that is not a pair of numbers).
@@ -45,7 +45,7 @@ class RandomSelector(ViewSelector):
     def __init__(
         self,
         num_views: int = 3,
-        mode: Literal["angle", "area"] = "angle",
+        mode: Literal["angle", "area"] = "area",
         yaw_range: tuple[float, float] = (-180.0, 180.0),
         pitch_range: tuple[float, float] = (-90.0, 90.0),
     ) -> None:
@@ -74,8 +74,11 @@ class RandomSelector(ViewSelector):
         )
         return views.view(batch, self.num_views, 2).to(predicted.device)
 
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(num_views={self.num_views}, mode={self.mode!r}, "
-            f"yaw_range={self.yaw_range}, pitch_range={self.pitch_range})"
-        )
+    def settings(self) -> dict[str, Any]:
+        """``num_views``, ``mode``, ``yaw_range`` and ``pitch_range`` (see :meth:`ViewSelector.settings`)."""
+        return {
+            "num_views": self.num_views,
+            "mode": self.mode,
+            "yaw_range": list(self.yaw_range),
+            "pitch_range": list(self.pitch_range),
+        }

@@ -26,9 +26,9 @@ is the harness's baseline and has no selector)."""
 
 #: Named settings of a selector: name -> (a name in :data:`SELECTORS`, its arguments). ``"paper"`` is the
 #: paper's exact rule: binary error summed over the first-hit map, the hard top n bins, no suppression of
-#: neighbouring bins (equal to ``ErrorGuidedSelector()``, spelled out so it stays the paper's whatever the
-#: selector's defaults). ``ErrorGuidedViewAugmentation(selector="paper")`` pairs it with the paper's callback
-#: settings (see :meth:`~lightning_vtr.callback.ErrorGuidedViewAugmentation.paper`).
+#: neighbouring bins (``ErrorGuidedSelector.paper()``). ``ErrorGuidedViewAugmentation(selector="paper")`` gives this
+#: selector alone; the paper's whole rule, with its callback settings, is
+#: :meth:`~lightning_vtr.callback.ErrorGuidedViewAugmentation.paper`.
 SELECTOR_PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
     "paper": ("error_guided", {"score": "paper", "min_separation": None, "temperature": None}),
 }

@@ -128,13 +128,14 @@ class VIATSelector(ViewSelector):
     unless the caller merges states.
 
     Args:
-        num_components: Gaussian components per category.
-        population: NES candidates per category and iteration.
-        lr: Adam learning rate on the pre-tanh parameters (0.1 moves a mean up to ~18 degrees of yaw).
-        iterations: NES steps per ``select`` call.
-        entropy_weight: ``lambda`` of the entropy bonus (nats on the normalised square).
-        num_views: views returned per object.
-        model_batch_size: most view sets per model call (``None``: all candidates at once).
+        num_components: ``3`` (default): Gaussian components per category.
+        population: ``8`` (default): NES candidates per category and iteration.
+        lr: ``0.1`` (default): Adam learning rate on the pre-tanh parameters (0.1 moves a mean up to ~18
+            degrees of yaw).
+        iterations: ``5`` (default): NES steps per ``select`` call.
+        entropy_weight: ``0.1`` (default): ``lambda`` of the entropy bonus (nats on the normalised square).
+        num_views: ``3`` (default): views returned per object.
+        model_batch_size: ``None`` (default: all candidates at once), or the most view sets per model call.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
@@ -172,6 +173,18 @@ class VIATSelector(ViewSelector):
             None if model_batch_size is None else check_int("model_batch_size", model_batch_size, minimum=1)
         )
         self._mixtures: dict[str, _Mixture] = {}
+
+    def settings(self) -> dict[str, Any]:
+        """Every constructor argument (see :meth:`ViewSelector.settings`)."""
+        return {
+            "num_components": self.num_components,
+            "population": self.population,
+            "lr": self.lr,
+            "iterations": self.iterations,
+            "entropy_weight": self.entropy_weight,
+            "num_views": self.num_views,
+            "model_batch_size": self.model_batch_size,
+        }
 
     # ------------------------------------------------------------------------------------ public API
     def select(

@@ -29,6 +29,7 @@ from torch import Tensor
 from lightning_vtr.geometry import check_viewpoints
 from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
 from lightning_vtr.utils.io import atomic_open
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_type
 
 __all__ = ["CachedSynthesizer", "SynthesisCache", "viewpoint_key"]
@@ -99,8 +100,8 @@ class SynthesisCache:
         check_type("object_id", object_id, str)
         if not object_id:
             raise ValueError(f"`object_id` must be a non-empty string, got {object_id!r}")
-        # quote() makes any id (slashes, dots) a single safe path component
-        return self.config_dir(config_key) / quote(object_id, safe="") / f"{viewpoint_key(viewpoint)}.png"
+        # quote() makes any id with slashes a single component; join_under refuses "." and ".." (not quoted)
+        return join_under(self.config_dir(config_key), quote(object_id, safe=""), f"{viewpoint_key(viewpoint)}.png")
 
     def get(self, object_id: str, viewpoint: Tensor | tuple[float, float], config_key: str) -> np.ndarray | None:
         """The cached ``(H, W, 4)`` uint8 RGBA image, or ``None`` on a miss (a missing or unreadable file)."""

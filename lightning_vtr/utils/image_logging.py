@@ -23,6 +23,7 @@ from PIL import Image
 
 from lightning_vtr.utils.compositing import alpha_composite
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import join_under
 
 __all__ = ["image_to_uint8", "log_image", "png_path"]
 
@@ -68,7 +69,7 @@ def png_path(directory: str | Path, tag: str, step: int) -> Path:
     The tag's ``/`` separate folders (as TensorBoard groups them); characters other than letters, digits,
     ``.``, ``_``, ``-`` become ``_``, and empty or ``..`` parts are dropped, so a tag never leaves ``images/``.
     """
-    return Path(directory, "images", *_tag_parts(tag), f"step_{int(step):06d}.png")
+    return join_under(Path(directory, "images"), *_tag_parts(tag), f"step_{int(step):06d}.png")
 
 
 def _tag_parts(tag: str) -> list[str]:

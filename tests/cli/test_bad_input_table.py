@@ -30,6 +30,7 @@ class Row:
     argparse: bool = False  # an option argparse rejects: the message ends with where --help is
     absent: list[str] = field(default_factory=list)  # paths under {tmp} that must not exist afterwards
     note: str = ""
+    inside: str = ""  # a folder under {tmp}: every file the run writes lies in it (no path leaves its root)
 
 
 _TRUNC = "{tmp}/trunc.ckpt"
@@ -46,6 +47,36 @@ _PIX3D = ["pix3d", "--root", "{tmp}/pix3d", "--checkpoint", "{tmp}/good.ckpt", "
 _FOLDER = ["evaluate-folder", "--images", "{tmp}/views", "--voxels", "{tmp}/views", "--checkpoint", "{tmp}/good.ckpt"]
 _FIT = ["fit", "--config"]
 _ROBUST = ["robustness", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"]
+
+_RULE = __import__("lightning_vtr.utils.paths").utils.paths.RULES
+_UNSAFE_DATA = ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/data", "--out", "{tmp}/out"]
+_KEY = "object key %r: "
+#: metadata.json cases, one per rule of a plain name: case -> (bad input, message after the file name).
+_UNSAFE_KEYS = {
+    "dot": ("object key with `..`", _KEY % "chair/../../../outside/evil" + _RULE["dot"] + " (its part '..')"),
+    "absolute": ("object key absolute", _KEY % "/abs/evil" + _RULE["absolute"]),
+    "key": ("object key without `/`", _KEY % "evil" + _RULE["key"] + " (found 0)"),
+    "separator": ("object key with `\\`", _KEY % "chair/a\\b" + _RULE["separator"]
+                  + " (its object id 'a\\\\b', found '\\\\' at index 1)"),
+    "control": ("object key with a control character", _KEY % "chair/a\x07" + _RULE["control"]
+                + " (its object id 'a\\x07', found '\\x07' at index 1)"),
+    "dash": ("object id `-rf`", _KEY % "chair/-rf" + _RULE["dash"] + " (its object id '-rf')"),
+    "empty": ("object id empty", _KEY % "chair/" + _RULE["empty"] + " (its object id '')"),
+    "case": ("categories `chair` and `Chair`", _KEY % "Chair/b" + _RULE["case"] + " (its category 'Chair' against "
+             "'chair/a')"),
+    "view_set": ("view set `../aligned`", "view set '../aligned': " + _RULE["separator"] + " (found '/' at index 2)"),
+}  # fmt: skip
+_UNSAFE_OBJECTS = {
+    "dot": ["chair/../../../outside/evil"],
+    "absolute": ["/abs/evil"],
+    "key": ["evil"],
+    "separator": ["chair/a\\b"],
+    "control": ["chair/a\x07"],
+    "dash": ["chair/-rf"],
+    "empty": ["chair/"],
+    "case": ["chair/a", "Chair/b"],
+    "view_set": ["chair/a"],
+}
 
 ROWS: list[Row] = [
     # ------------------------------------------------------------------ build-dataset
@@ -221,6 +252,22 @@ ROWS: list[Row] = [
         "that LRGT does not take)", 1),
     Row("predict", "(LightningCLI) `--config` missing", ["predict", "--config", "{tmp}/none.yaml"],
         "`--config` must be a YAML config file, got '{tmp}/none.yaml' (no such file)", 2),
+    # ------------------------------------------------------------------ unsafe names (no path leaves its root)
+    *[Row("predict", f"`--data` {what}", _UNSAFE_DATA, f"{{tmp}}/data/metadata.json: {message}", 1, f"unsafe:{case}",
+          absent=["out"], inside="out") for case, (what, message) in _UNSAFE_KEYS.items()],
+    Row("build-dataset", "`--source` mesh file `-rf.obj` (generic layout)", ["build-dataset", "{tmp}/new",
+        "--source", "{tmp}/meshes", "--no-progress"], "{tmp}/meshes/chair: mesh file '-rf': " + _RULE["dash"], 1,
+        "unsafe_mesh", absent=["new/metadata.json"], inside="new"),
+    Row("evaluate-folder", "`--images` model folder `-x`", [*_FOLDER, "--out", "{tmp}/out"],
+        "{tmp}/views/chair: model folder '-x': " + _RULE["dash"], 1, "unsafe_folder", absent=["out/table.md"],
+        inside="out"),
+    Row("pix3d", "`pix3d.json` `img` with `..`", _PIX3D,
+        "{tmp}/pix3d/pix3d.json, record 0 (../evil.png): key 'img' '../evil.png': " + _RULE["dot"] + " (its part '..')",
+        1, "unsafe_pix3d", absent=["out/table.md"], inside="out"),
+    Row("predict", "`--out` an earlier output whose object folder is a symlink leading out", _PREDICT,
+        "{tmp}/out/views: expected a path inside {tmp}/out, found one that resolves to {tmp}/elsewhere (a name with "
+        "'..', an absolute name or a symlink that leads out); nothing was written there", 1, "symlinked_out",
+        inside="out", note="the writer's own check: every path it writes is joined with join_under"),
 ]  # fmt: skip
 
 
@@ -336,7 +383,52 @@ def _configs(tmp: Path) -> None:
     (tmp / "root.yaml").write_text(f"data:\n  root: {tmp / 'nowhere'}\n")
 
 
+def _unsafe_meta(tmp: Path, case: str) -> None:
+    """A metadata.json whose names break one rule (:data:`_UNSAFE_OBJECTS`), in a folder beside the output."""
+    import json
+
+    view_sets = ["../aligned"] if case == "view_set" else ["aligned"]
+    objects = {key: {"split": "test", "views": {"aligned": [[0.0, 30.0]]}} for key in _UNSAFE_OBJECTS[case]}
+    meta = {"format": "lightning_vtr.shapenet_vtr", "version": 1, "objects": objects, "view_sets": view_sets,
+            "resolution": 32, "image_size": 64}  # fmt: skip
+    (tmp / "data").mkdir()
+    (tmp / "data" / "metadata.json").write_text(json.dumps(meta))
+
+
+def _unsafe_mesh(tmp: Path) -> None:
+    (tmp / "meshes" / "chair").mkdir(parents=True)
+    (tmp / "meshes" / "chair" / "-rf.obj").write_text("v 0 0 0\n")
+
+
+def _unsafe_folder(tmp: Path) -> None:
+    (tmp / "views" / "chair" / "-x").mkdir(parents=True)
+    _picture(tmp / "views" / "chair" / "-x" / "00.png")
+
+
+def _unsafe_pix3d(tmp: Path) -> None:
+    import json
+
+    record = {"img": "../evil.png", "mask": "mask/chair/0001.png", "voxel": "model/chair/a/voxel.mat",
+              "category": "chair", "bbox": [0, 0, 10, 10], "img_size": [10, 10],
+              "rot_mat": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "trans_mat": [0, 0, 2]}  # fmt: skip
+    _pix3d(tmp, json.dumps([record]))
+
+
+def _symlinked_out(tmp: Path) -> None:
+    """An earlier ``predict`` output whose folder for ``views`` is a symlink to a folder outside it."""
+    _views(tmp)
+    (tmp / "out").mkdir()
+    (tmp / "out" / "predictions.json").write_text("[]")
+    (tmp / "elsewhere").mkdir()
+    (tmp / "out" / "views").symlink_to(tmp / "elsewhere", target_is_directory=True)
+
+
 SETUPS = {
+    **{f"unsafe:{case}": (lambda tmp, mp, case=case: _unsafe_meta(tmp, case)) for case in _UNSAFE_OBJECTS},
+    "unsafe_mesh": lambda tmp, mp: _unsafe_mesh(tmp),
+    "unsafe_folder": lambda tmp, mp: _unsafe_folder(tmp),
+    "unsafe_pix3d": lambda tmp, mp: _unsafe_pix3d(tmp),
+    "symlinked_out": lambda tmp, mp: _symlinked_out(tmp),
     "": lambda tmp, mp: None,
     "other": lambda tmp, mp: _other(tmp),
     "views": lambda tmp, mp: _views(tmp),
@@ -365,6 +457,83 @@ SETUPS = {
 }
 
 
+# ----------------------------------------------------------------- a model and a selector of the user's own
+_USER_MODEL = """
+import lightning as L
+
+
+class NotAModel(L.LightningModule):
+    pass
+
+
+class NoSteps(L.LightningModule):
+    image_size, num_views, voxel_resolution = 64, 3, 32
+
+    def predict_voxels(self, images):
+        return images.new_zeros(len(images), 32, 32, 32)
+"""
+_NOT_A_SELECTOR = "mine:\n  title: Mine\n  description: d\n  selector: {class_path: usermodel_bad.NoSteps}\n"
+_NO_MODULE = "mine:\n  title: Mine\n  description: d\n  selector:\n    class_path: nosuchmodule.Sel\n"
+_SHIPPED_TITLE = "mine:\n  title: Ours\n  description: d\n  selector: random\n"
+
+
+def _user_files(tmp: Path, mp: pytest.MonkeyPatch) -> None:
+    """``usermodel_bad.py`` and strategies files in the working folder, which the commands import from."""
+    _views(tmp)
+    (tmp / "usermodel_bad.py").write_text(_USER_MODEL)
+    for name, text in (("not_selector", _NOT_A_SELECTOR), ("no_module", _NO_MODULE), ("title", _SHIPPED_TITLE)):
+        (tmp / f"{name}.yaml").write_text(text)
+    mp.chdir(tmp)
+    mp.setattr(sys, "path", list(sys.path))  # the working folder the command adds is forgotten after the test
+    mp.delitem(sys.modules, "usermodel_bad", raising=False)
+
+
+SETUPS["user_files"] = _user_files
+_PROTOCOL = "does not satisfy lightning_vtr.ReconstructionModel: missing %s (see lightning_vtr.protocol)"
+_ROW = "{tmp}/%s.yaml, row 'mine'"
+ROWS += [
+    Row("predict", "`--model` a module not found", [*_PREDICT, "--model", "nosuchmodule.Net"],
+        "`--model` must be an importable class path module.Class, got 'nosuchmodule.Net': module 'nosuchmodule' not "
+        "found (run from the folder holding nosuchmodule.py, or install it)", 2, "user_files", absent=["out"]),
+    Row("predict", "`--model` a class the module lacks", [*_PREDICT, "--model", "usermodel_bad.Missing"],
+        "`--model` must be an importable class path, got 'usermodel_bad.Missing': usermodel_bad has no 'Missing'", 2,
+        "user_files", absent=["out"]),
+    Row("predict", "`--model` neither registered nor a class path", [*_PREDICT, "--model", "unet"],
+        "`--model` must be pix2vox, lrgt or a class path module.Class, got 'unet'", 2, "user_files"),
+    Row("predict", "`--model` a LightningModule without `predict_voxels`", [*_PREDICT, "--model",
+        "usermodel_bad.NotAModel"], "`--model` usermodel_bad.NotAModel " + _PROTOCOL % "predict_voxels(images) -> "
+        "(B, R, R, R)", 2, "user_files", absent=["out"]),
+    Row("robustness", "`--model` a module not found", ["robustness", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}",
+        "--out", "{tmp}/out", "--model", "nosuchmodule.Net"], "`--model` must be an importable class path "
+        "module.Class, got 'nosuchmodule.Net': module 'nosuchmodule' not found (run from the folder holding "
+        "nosuchmodule.py, or install it)", 2, "user_files", absent=["out"]),
+    Row("fit", "`--model` without its own `training_step` / `configure_optimizers`", ["fit", "--model",
+        "usermodel_bad.NoSteps"], "`--model` usermodel_bad.NoSteps " + _PROTOCOL % "training_step, "
+        "configure_optimizers", 2, "user_files"),
+    Row("report", "`--model` without its own `training_step` / `configure_optimizers`", ["report", "--model",
+        "usermodel_bad.NoSteps"], "`--model` usermodel_bad.NoSteps " + _PROTOCOL % "training_step, "
+        "configure_optimizers", 2, "user_files"),
+    Row("report", "`--strategies` a row no file has", ["report", "--strategies", "none,ours"],
+        "`--strategies` names unknown row(s) 'ours' (`--list-strategies` lists the rows; rows of your own: "
+        "--strategies-file)", 2, "user_files"),
+    Row("report", "`--strategies-file` missing", ["report", "--strategies-file", "{tmp}/none.yaml"],
+        "`--strategies-file` must be a YAML file of strategy rows, got '{tmp}/none.yaml' (no such file)", 2,
+        "user_files"),
+    Row("report", "`--only-strategies-file` without a file", ["report", "--only-strategies-file"],
+        "`--only-strategies-file` needs `--strategies-file FILE`", 2, "user_files"),
+    Row("report", "`--strategies-file` row: `class_path` not a ViewSelector", ["report", "--strategies-file",
+        "{tmp}/not_selector.yaml"], _ROW % "not_selector" + ": usermodel_bad.NoSteps is not a "
+        "lightning_vtr.selection.ViewSelector subclass", 1, "user_files"),
+    Row("report", "`--strategies-file` row: `class_path` module not found", ["report", "--strategies-file",
+        "{tmp}/no_module.yaml"], _ROW % "no_module" + " must be an importable class path module.Class, got "
+        "'nosuchmodule.Sel': module 'nosuchmodule' not found (run from the folder holding nosuchmodule.py, or "
+        "install it)", 1, "user_files"),
+    Row("report", "`--strategies-file` row with a shipped row's title", ["report", "--strategies-file",
+        "{tmp}/title.yaml"], "{tmp}/title.yaml: title(s) 'Ours' repeat a shipped row's; choose another title, or "
+        "use the shipped row's name to replace it", 1, "user_files"),
+]  # fmt: skip
+
+
 def _fill(text: str, tmp: Path) -> str:
     return text.replace("{tmp}", str(tmp))
 
@@ -383,6 +552,7 @@ def test_a_bad_input_gets_its_one_line_and_exit_status(row, tmp_path, monkeypatc
     _checkpoints(tmp_path)
     SETUPS[row.setup](tmp_path, monkeypatch)
     argv = [_fill(word, tmp_path) for word in row.argv]
+    before = _files(tmp_path)
     code = main(argv)
     captured = capsys.readouterr()
     assert "Traceback" not in captured.out + captured.err
@@ -396,6 +566,20 @@ def test_a_bad_input_gets_its_one_line_and_exit_status(row, tmp_path, monkeypatc
         assert lines == lines[-1:]  # one line: no usage, no Lightning banner before it
     for path in row.absent:
         assert not (tmp_path / path).exists(), f"{path} was left behind"
+    if row.inside:
+        written = _files(tmp_path) - before
+        assert [p for p in written if not p.startswith(f"{row.inside}/")] == [], "a file outside the output folder"
+
+
+def _files(tmp: Path) -> set[str]:
+    """Every file under ``tmp`` (symlinks followed), relative to it."""
+    import os
+
+    return {
+        Path(folder, name).relative_to(tmp).as_posix()
+        for folder, _, names in os.walk(tmp, followlinks=True)
+        for name in names
+    }
 
 
 # ------------------------------------------------------------------------------------------ the docs table

@@ -39,13 +39,19 @@ def test_every_config_parses(path, capsys):
     if "_paper_" in path.stem:  # the configs "as published" name the paper's exact rule, not the default
         init_args = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]
         assert init_args["selector"] == "paper"
-        callback = ErrorGuidedViewAugmentation(selector=init_args["selector"], fraction=init_args["fraction"])
+        pool = init_args["pool"].get("init_args", init_args["pool"])  # the printed form of a ViewpointPool
+        callback = ErrorGuidedViewAugmentation(
+            selector=init_args["selector"],
+            fraction=init_args["fraction"],
+            search_fraction=init_args["search_fraction"],
+            pool={k: pool[k] for k in ("capacity", "prefer_others", "refresh")},
+        )
         assert (callback.selector.score, callback.selector.min_separation, callback.selector.temperature) == (
             "paper",
             None,
             None,
         )
-        assert (callback.search_fraction, callback.pool_refresh) == (init_args["fraction"], False)
+        assert (callback.search_fraction, callback.pool.refresh) == (init_args["fraction"], False)
     if "zero123" in path.stem:
         synth = callbacks["lightning_vtr.ErrorGuidedViewAugmentation"]["synthesizer"]["init_args"]["synthesizer"]
         assert synth["class_path"] == "lightning_vtr.synthesis.Zero123Synthesizer.from_pretrained"

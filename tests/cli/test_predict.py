@@ -232,6 +232,20 @@ def test_lightning_cli_predict_writes_through_the_prediction_writer(tiny_dataset
 
 
 def test_an_unknown_model_class_is_named(checkpoint):
-    message = "`--model` must be pix2vox, lrgt or an importable class path (module.Class), got 'no.such.Model'"
+    message = "`--model` must be an importable class path module.Class, got 'no.such.Model': module 'no' not found"
     with pytest.raises(ValueError, match=re.escape(message)):
         load_model(checkpoint, "no.such.Model")
+
+
+def test_a_checkpoint_no_class_loads_names_the_model_option(tmp_path):
+    import lightning as L
+
+    from lightning_vtr.errors import DataError
+
+    torch.save(
+        {"state_dict": {"grid": torch.zeros(2)}, "pytorch-lightning_version": L.__version__}, tmp_path / "m.ckpt"
+    )
+    with pytest.raises(DataError) as error:
+        load_model(tmp_path / "m.ckpt")
+    assert "needs `--model pix2vox`, `--model lrgt` or `--model module.Class`" in str(error.value)
+    assert "Pix2VoxPlusPlus: " in str(error.value) and "LRGT: " in str(error.value)

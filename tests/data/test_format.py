@@ -19,6 +19,7 @@ from lightning_vtr.data.format import (
     read_object_json,
     scan_dataset,
 )
+from lightning_vtr.utils.paths import UnsafeNameError
 
 VIEWS = {"aligned": [[0, 30], [90, 30]], "hemispherical": [[10, 5], [-20, 80]], "spherical": [[170, -60], [-180, 0]]}
 
@@ -120,7 +121,7 @@ def test_malformed_entries_are_reported(tmp_path):
     with pytest.raises(DatasetFormatError, match="spherical"):
         scan_dataset(tmp_path)
     atomic_write_json(tmp_path / "metadata.json", _metadata({"c0": {"split": "train", "views": VIEWS}}))
-    with pytest.raises(DatasetFormatError, match="<category>/<object_id>"):
+    with pytest.raises(UnsafeNameError, match="<category>/<object_id>"):
         scan_dataset(tmp_path)
 
 

@@ -172,9 +172,8 @@ def test_a_transposed_rotation_fails_the_check(pix3d_root, tmp_path):
     entries = json.loads((pix3d_root / "pix3d.json").read_text())
     for entry in entries:
         entry["rot_mat"] = np.asarray(entry["rot_mat"]).T.tolist()
-        entry["img"], entry["mask"], entry["voxel"] = (str(pix3d_root / entry[k]) for k in ("img", "mask", "voxel"))
     (tmp_path / "pix3d.json").write_text(json.dumps(entries))
-    transposed = read_pix3d(tmp_path)
+    transposed = read_pix3d(pix3d_root, annotations=tmp_path / "pix3d.json")
     right = [frame_check(r) for r in records]
     wrong = [frame_check(r) for r in transposed]
     assert max(wrong) < 0.7 < min(right), (wrong, right)

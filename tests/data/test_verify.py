@@ -157,6 +157,29 @@ def test_a_malformed_metadata_entry_is_a_metadata_problem(dataset):
     assert (problem.path, problem.kind, problem.actual) == (dataset / "metadata.json", "metadata", "dev")
 
 
+def test_an_unsafe_name_is_its_own_problem_with_its_rule_and_is_never_read(dataset):
+    # The issue's traversal: the key leads out of objects/ and out of the dataset; a copy of a real object waits there.
+    key = "chair/../../../outside/evil"
+    shutil.copytree(_obj(dataset, "chair/chair_0001"), dataset.parent / "outside" / "evil")
+    _edit_metadata(dataset, lambda m: m["objects"].update({key: m["objects"].pop("chair/chair_0001")}))
+    (dataset / "objects" / "chair" / "Chair_0000").mkdir()  # a folder that is not listed: no problem of names
+    report = verify_dataset(dataset, progress=False)
+    problem = _only(report)
+    assert (problem.path, problem.kind) == (dataset / "metadata.json", "unsafe_name")
+    assert str(problem) == (
+        f"{dataset / 'metadata.json'}: object key {key!r}: must not be '.' or '..', which name the folder itself "
+        "or its parent (its part '..')"
+    )
+    assert report.objects == 4 and report.files == 3 * (1 + 3 * VIEWS)  # the other objects' files, not its
+
+
+def test_object_keys_that_differ_only_in_case_are_an_unsafe_name(dataset):
+    _edit_metadata(dataset, lambda m: m["objects"].update({"Chair/chair_0009": m["objects"]["chair/chair_0000"]}))
+    problem = verify_dataset(dataset, progress=False).problems[0]
+    assert problem.kind == "unsafe_name"
+    assert "'Chair/chair_0009': must not differ only in case" in str(problem)
+
+
 def test_every_problem_is_listed_in_metadata_order_whatever_the_workers(dataset):
     _truncate(_obj(dataset, "chair/chair_0000") / "aligned" / "00.png")
     (_obj(dataset, "chair/chair_0001") / "spherical" / "02.png").unlink()

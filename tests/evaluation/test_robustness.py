@@ -256,6 +256,18 @@ def test_plot_writes_a_png_of_the_expected_size(tmp_path):
     assert (tmp_path / "ref" / "B_minus_A.png").is_file() and 'src="B_minus_A.png"' in compared
 
 
+def test_index_html_renders_a_sections_markdown_table_as_an_html_table(tmp_path):
+    from lightning_vtr.evaluation.robustness_plot import write_index_html
+
+    a = RobustnessMap.from_iou(np.full((1, N_BINS), 0.5), k=K, object_ids="a", categories="x")
+    table = "| score | Spearman <rho> |\n|---|---|\n| visible | 0.025 |\n| input | 0.171 |"
+    page = write_index_html(tmp_path, {"A": a}, sections={"Score validity: A": table}).read_text()
+    section = page.split("<h2>Score validity: A</h2>", 1)[1]
+    assert "|" not in section.split("</body>")[0], "a Markdown pipe is left in the page"
+    assert "<tr><th>score</th><th>Spearman &lt;rho&gt;</th></tr>" in section
+    assert "<tr><td>visible</td><td>0.025</td></tr>" in section and "<tr><td>input</td><td>0.171</td></tr>" in section
+
+
 def test_maps_of_a_pair_share_one_colour_scale():
     from lightning_vtr.evaluation.robustness_plot import shared_limits
 

@@ -86,16 +86,9 @@ PAPER_RESOLVED = {
         "threshold": 0.4,
         "min_separation": None,
         "temperature": None,
-        "mode": None,
-        "mask": None,
-        "reduction": None,
-        "sigma": None,
+        "spread": 1 / 6,
         "fallback": "area",
-        "eps": 0.0,
         "relative": False,
-        "model_batch_size": 72,
-        "map_objects": 2,
-        "map_momentum": 0.3,
     },
     "callback_kwargs": {
         "fraction": 0.05,
@@ -122,7 +115,7 @@ def _settings(callback) -> dict:
     return {
         "selector": (type(selector).__name__, selector.score, selector.min_separation, selector.temperature),
         "search": (callback.fraction, callback.search_fraction, callback.generate_for, callback.min_objects),
-        "pool": (pool.capacity, pool.prefer_others, callback.pool_refresh),
+        "pool": (pool.capacity, pool.prefer_others, pool.refresh),
         "select_at_start": callback.select_at_start,
         "seed": callback.seed,
     }

@@ -135,7 +135,7 @@ def test_models_registry_builds_each_model_class_with_its_preset():
     for name, cls in experiment.MODELS.items():
         model = experiment.make_model(ExperimentConfig(model=name, preset="tiny"))
         assert type(model) is cls
-    with pytest.raises(ValueError, match="`model` must be one of 'pix2vox', 'lrgt', got 'unet'"):
+    with pytest.raises(ValueError, match="`model` must be pix2vox, lrgt or a class path module.Class, got 'unet'"):
         experiment.make_model(ExperimentConfig(model="unet"))
     assert not hasattr(experiment, "MODEL_CLASSES")  # removed: the names are the keys of MODELS
 
@@ -238,7 +238,7 @@ def _callback_settings(callback) -> dict:
         "search_fraction": callback.search_fraction,
         "generate_for": callback.generate_for,
         "pool": None if pool is None else (pool.capacity, pool.prefer_others),
-        "pool_refresh": callback.pool_refresh,
+        "pool_refresh": None if pool is None else pool.refresh,
         "select_at_start": callback.select_at_start,
     }
 
@@ -255,13 +255,13 @@ def test_variants_registry_holds_the_table_1_strategies_and_the_named_variants()
     # A registry entry cannot be changed through its kwargs.
     with pytest.raises(TypeError):
         experiment.VARIANTS["visible_nms"].selector_kwargs["min_separation"] = 0.0
-    with pytest.raises(ValueError, match="`selector` must be one of"):
+    with pytest.raises(ValueError, match="selector: unknown selector 'ours'"):
         experiment.StrategyVariant("ours")
 
 
 def test_variants_build_their_selector_and_callback_settings():
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
-    from lightning_vtr.selection import ErrorGuidedSelector, RandomSelector
+    from lightning_vtr.selection import RandomSelector
 
     config = ExperimentConfig(fraction=0.1, seed=4)
 
@@ -271,9 +271,9 @@ def test_variants_build_their_selector_and_callback_settings():
     assert build("none") is None
     assert isinstance(build("random").selector, RandomSelector) and build("random").selector.mode == "angle"
     assert build("random_area").selector.mode == "area" and build("random_area").pool is None
-    # "error_guided" follows the package defaults, whatever they are.
-    default = ErrorGuidedViewAugmentation(ErrorGuidedSelector(), fraction=0.1, seed=4)
-    assert _callback_settings(build("error_guided")) == _callback_settings(default)
+    # "error_guided" is the paper's Table 1 row: the paper's whole rule
+    paper_rule = ErrorGuidedViewAugmentation.paper(fraction=0.1, seed=4)
+    assert _callback_settings(build("error_guided")) == _callback_settings(paper_rule)
     paper = build("paper")
     assert (paper.selector.score, paper.selector.min_separation, paper.selector.temperature) == ("paper", None, None)
     assert _callback_settings(paper) | {"selector": None} == {
@@ -286,8 +286,9 @@ def test_variants_build_their_selector_and_callback_settings():
         "select_at_start": True,
     }
     released = build("released")
-    assert (released.selector.score, released.selector.mask, released.selector.reduction) == ("released", "gt", "mean")
-    assert (released.pool_refresh, released.pool.prefer_others, released.search_fraction) == (True, False, 0.35)
+    options = released.selector.score_options
+    assert (released.selector.score, options.mask, options.reduction) == ("released", "gt", "mean")
+    assert (released.pool.refresh, released.pool.prefer_others, released.search_fraction) == (True, False, 0.35)
     assert build("visible").selector.score == "visible" and build("visible").selector.min_separation is None
     nms = build("visible_nms").selector
     assert (nms.score, nms.min_separation, nms.temperature) == ("visible", 30.0, None)
@@ -295,11 +296,11 @@ def test_variants_build_their_selector_and_callback_settings():
     assert (tau.score, tau.min_separation, tau.temperature) == ("visible", 30.0, 1.0)
     search = build("visible_nms_search")
     assert (search.selector.score, search.selector.min_separation) == ("visible", 30.0)
-    assert (search.search_fraction, search.pool_refresh, search.fraction) == (0.35, True, 0.1)
+    assert (search.search_fraction, search.pool.refresh, search.fraction) == (0.35, True, 0.1)
     # The caller's kwargs go over the variant's.
     merged = build("visible_nms_search", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
     assert (merged.selector.k, merged.selector.score, merged.selector.min_separation) == (15, "visible", 30.0)
-    assert (merged.search_fraction, merged.pool_refresh) == (0.5, True)
+    assert (merged.search_fraction, merged.pool.refresh) == (0.5, True)
     # The input-side rows query the model through a context and train each object on its own selection.
     for name, temperature in (("input_nms", None), ("input_tau", 1.0)):
         row = build(name)
@@ -317,7 +318,7 @@ def test_variants_build_their_selector_and_callback_settings():
             30.0,
             temperature,
         )
-        assert (fresh.fraction, fresh.max_samples, fresh.search_fraction, fresh.pool_refresh) == (0.2, 34, 0.35, True)
+        assert (fresh.fraction, fresh.max_samples, fresh.search_fraction, fresh.pool.refresh) == (0.2, 34, 0.35, True)
 
 
 class _Sleepy(L.Callback):

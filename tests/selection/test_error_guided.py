@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector, ViewSelector, nearest_bins
+from lightning_vtr.selection import ErrorGuidedSelector, PaperScore, ViewSelector, nearest_bins
 from lightning_vtr.selection.error_guided import relative_to_category
 
 
@@ -22,7 +22,7 @@ def side_error_pair(res: int = 12) -> tuple[torch.Tensor, torch.Tensor]:
 
 def test_selects_around_the_side_with_the_error():
     pred, gt = side_error_pair()
-    selector = ErrorGuidedSelector(k=60, num_views=1, mode="soft", mask="gt")
+    selector = ErrorGuidedSelector.paper(k=60, num_views=1, score=PaperScore(mode="soft", mask="gt"))
     views = selector.select(pred, gt, ["chair", "chair"], generator=torch.Generator().manual_seed(0))
     assert views.shape == (2, 1, 2)
     assert candidate_viewpoints(60)[selector.last_bins[0, 0]].tolist() == [90.0, 0.0]
@@ -34,7 +34,7 @@ def test_selects_around_the_side_with_the_error():
 
 def test_binary_default_picks_bins_facing_the_error_axis():
     pred, gt = side_error_pair()
-    selector = ErrorGuidedSelector()  # K = 30, n = 3, binary at 0.4 (the paper)
+    selector = ErrorGuidedSelector.paper()  # K = 30, n = 3, binary at 0.4 (the paper)
     assert (selector.k, selector.num_views, selector.sigma, selector.uses_pool) == (30, 3, 5.0, True)
     selector.select(pred[:1], gt[:1], ["chair"], generator=torch.Generator().manual_seed(0))
     best = candidate_viewpoints(30)[selector.last_bins[0]]
@@ -44,7 +44,7 @@ def test_binary_default_picks_bins_facing_the_error_axis():
 
 def test_score_views_matches_select_scores_and_mean_reduction_has_no_nan():
     pred, gt = side_error_pair()
-    selector = ErrorGuidedSelector(k=90, reduction="mean")
+    selector = ErrorGuidedSelector.paper(k=90, score=PaperScore(reduction="mean"))
     scores = selector.score_views(pred, gt)
     assert scores.shape == (2, 8) and not torch.isnan(scores).any()
     assert torch.equal(scores[1], torch.zeros(8))  # no error: 0, not 0 / 0
@@ -54,7 +54,7 @@ def test_score_views_matches_select_scores_and_mean_reduction_has_no_nan():
 def test_no_error_falls_back_to_uniform_sampling():
     gt = torch.zeros(50, 6, 6, 6)
     gt[:, 1:5, 1:5, 1:5] = 1.0
-    selector = ErrorGuidedSelector(num_views=2, fallback="area")
+    selector = ErrorGuidedSelector.paper(num_views=2, fallback="area")
     views = selector.select(gt.clone(), gt, ["a"] * 50, generator=torch.Generator().manual_seed(0))
     assert views.shape == (50, 2, 2) and torch.isfinite(views).all()
     assert bool(selector.last_fallback.all())
@@ -67,7 +67,7 @@ def test_no_error_falls_back_to_uniform_sampling():
 
 def test_deterministic_with_seeded_generator():
     pred, gt = side_error_pair()
-    selector = ErrorGuidedSelector(k=30)
+    selector = ErrorGuidedSelector.paper(k=30)
     a = selector.select(pred, gt, ["x", "x"], generator=torch.Generator().manual_seed(3))
     b = selector.select(pred, gt, ["x", "x"], generator=torch.Generator().manual_seed(3))
     c = selector.select(pred, gt, ["x", "x"], generator=torch.Generator().manual_seed(4))
@@ -75,29 +75,29 @@ def test_deterministic_with_seeded_generator():
 
 
 def test_empty_batch_returns_empty_selection():
-    selector = ErrorGuidedSelector()
+    selector = ErrorGuidedSelector.paper()
     out = selector.select(torch.zeros(0, 8, 8, 8), torch.zeros(0, 8, 8, 8), [])
     assert out.shape == (0, 3, 2)
 
 
 def test_validation_messages_name_argument_and_value():
     with pytest.raises(ValueError, match=r"`k` must be a bin interval K in degrees that divides 180, got 25"):
-        ErrorGuidedSelector(k=25)
+        ErrorGuidedSelector.paper(k=25)
     with pytest.raises(ValueError, match=r"`num_views`.*\[1, 8\].*9"):
-        ErrorGuidedSelector(k=90, num_views=9)
+        ErrorGuidedSelector.paper(k=90, num_views=9)
     with pytest.raises(ValueError, match="`threshold`.*1.5"):
-        ErrorGuidedSelector(threshold=1.5)
+        ErrorGuidedSelector.paper(threshold=1.5)
     with pytest.raises(ValueError, match="`mode`.*'hard'"):
-        ErrorGuidedSelector(mode="hard")
+        PaperScore(mode="hard")
     with pytest.raises(ValueError, match="`mask`.*'pred'"):
-        ErrorGuidedSelector(mask="pred")
+        PaperScore(mask="pred")
     with pytest.raises(ValueError, match="`reduction`.*'max'"):
-        ErrorGuidedSelector(reduction="max")
-    with pytest.raises(ValueError, match="`sigma`.*-2"):
-        ErrorGuidedSelector(sigma=-2)
+        PaperScore(reduction="max")
+    with pytest.raises(ValueError, match="`spread`.*-2"):
+        ErrorGuidedSelector.paper(spread=-2)
     with pytest.raises(ValueError, match="`fallback`.*'none'"):
-        ErrorGuidedSelector(fallback="none")
-    selector = ErrorGuidedSelector()
+        ErrorGuidedSelector.paper(fallback="none")
+    selector = ErrorGuidedSelector.paper()
     with pytest.raises(ValueError, match=r"predicted \(1, 8, 8, 8\) and target \(1, 6, 6, 6\)"):
         selector.select(torch.zeros(1, 8, 8, 8), torch.zeros(1, 6, 6, 6), ["a"])
     with pytest.raises(ValueError, match="`categories`.*2 for a batch of 1"):
@@ -113,7 +113,7 @@ def test_score_views_equals_scores_of_the_projection_maps(mode, reduction):
     gen = torch.Generator().manual_seed(1)
     pred = torch.rand(3, 8, 8, 8, generator=gen)
     gt = (torch.rand(3, 8, 8, 8, generator=gen) < 0.4).float()
-    selector = ErrorGuidedSelector(k=60, mode=mode, reduction=reduction, eps=0.05)
+    selector = ErrorGuidedSelector.paper(k=60, score=PaperScore(mode=mode, reduction=reduction, eps=0.05))
     err = error_volume(pred, gt, mode=mode)
     expected = view_scores(error_projection(err, candidate_viewpoints(60), eps=0.05), reduction=reduction)
     assert torch.allclose(selector.score_views(pred, gt), expected, atol=1e-5)
@@ -142,11 +142,11 @@ def slab_and_wall(res: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
 def test_relative_scores_pick_where_an_object_is_worse_than_its_category():
     pred, gt = slab_and_wall()
     views = candidate_viewpoints(30)
-    absolute = ErrorGuidedSelector(num_views=1)
+    absolute = ErrorGuidedSelector.paper(num_views=1)
     absolute.select(pred, gt, ["c", "c"], generator=torch.Generator().manual_seed(0))
     # the slab's silhouette is the largest error for both: absolute scores look from the poles' bins
     assert views[absolute.last_bins[:, 0]][:, 1].abs().tolist() == [75.0, 75.0]
-    relative = ErrorGuidedSelector(num_views=1, relative=True)
+    relative = ErrorGuidedSelector.paper(num_views=1, relative=True)
     assert relative.batched and not absolute.batched
     relative.select(pred, gt, ["c", "c"], generator=torch.Generator().manual_seed(0))
     yaw, pitch = views[relative.last_bins[1, 0]].tolist()
@@ -160,9 +160,9 @@ def test_relative_scores_pick_where_an_object_is_worse_than_its_category():
 
 def test_relative_keeps_the_fallback_of_objects_without_error():
     pred, gt = side_error_pair()
-    selector = ErrorGuidedSelector(relative=True)
+    selector = ErrorGuidedSelector.paper(relative=True)
     selector.select(pred, gt, ["chair", "chair"], generator=torch.Generator().manual_seed(0))
     assert selector.last_fallback.tolist() == [False, True]
     assert float(selector.last_scores[1].abs().sum()) == 0.0
     with pytest.raises(TypeError, match="relative"):
-        ErrorGuidedSelector(relative=1)
+        ErrorGuidedSelector.paper(relative=1)

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, candidate_viewpoints, orthographic_pixel_coords, voxel_centers
-from lightning_vtr.selection import ErrorGuidedSelector, projection
+from lightning_vtr.selection import ErrorGuidedSelector, first_hit
 from lightning_vtr.selection.projection import error_volume, projection_scores, visible_error_scores
 
 
@@ -28,7 +28,7 @@ def pixel_coords(views: torch.Tensor, res: int) -> torch.Tensor:
     reference takes its coordinates from the same geometry calls as the scores and checks everything after them.
     """
     centres = voxel_centers(res, torch.float64).reshape(-1, 3)
-    step = projection._TABLE_VIEW_CHUNK
+    step = first_hit._TABLE_VIEW_CHUNK
     chunks = [views[s : s + step].double() for s in range(0, len(views), step)]
     return torch.cat([orthographic_pixel_coords(centres, c, res, DEFAULT_HALF_EXTENT) for c in chunks])
 
@@ -134,7 +134,7 @@ def test_visible_scores_equal_the_loop_reference_exactly(res, mode, views):
 @pytest.mark.parametrize("score", ["paper", "released", "visible"])
 def test_selector_scores_equal_the_loop_reference_exactly(score):
     predicted, target = random_objects(8, seed=7)
-    selector = ErrorGuidedSelector(k=60, score=score)
+    selector = ErrorGuidedSelector.paper(k=60, score=score)
     gt = target >= 0.5
     if score == "visible":
         expected = reference_scores((predicted >= 0.4) | gt, ((predicted >= 0.4) != gt).float(), selector.candidates)
@@ -158,8 +158,8 @@ def test_scores_do_not_depend_on_the_chunking(monkeypatch):
         visible_error_scores(predicted, target, views),
         visible_error_scores(predicted, target, views, mode="soft"),
     )
-    monkeypatch.setattr(projection, "_SCORE_CHUNK_PAIRS", 1)
-    monkeypatch.setattr(projection, "_SCORE_CHUNK_SLOTS", 1)
+    monkeypatch.setattr(first_hit, "_SCORE_CHUNK_PAIRS", 1)
+    monkeypatch.setattr(first_hit, "_SCORE_CHUNK_SLOTS", 1)
     chunked = (
         projection_scores(soft, views, reduction="mean"),
         projection_scores(soft > 0, views, binary=True),

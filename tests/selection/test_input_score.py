@@ -1,4 +1,4 @@
-"""``ErrorGuidedSelector(score="input")``: every candidate view is rendered and scored by the model's loss on it.
+"""``ErrorGuidedSelector.paper(score="input")``: every candidate view is rendered and scored by the model's loss on it.
 
 A fake synthesizer writes each viewpoint into its image and a fake model fails in proportion to how close its
 one input view is to a known bad viewpoint, so the right scores and bins are known in closed form.
@@ -24,7 +24,7 @@ from helpers import (
 )
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector
+from lightning_vtr.selection import ErrorGuidedSelector, InputScore
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.selection.diversity import bin_solid_angles
 from lightning_vtr.synthesis.base import SynthesisRequest
@@ -78,7 +78,7 @@ def _expected_scores(k: int) -> torch.Tensor:
 
 
 def test_input_score_is_the_models_loss_given_each_bin_centre_alone():
-    selector = ErrorGuidedSelector(k=30, score="input")
+    selector = ErrorGuidedSelector.paper(k=30, score="input")
     context, model = _context(selector)
     volumes = torch.zeros(2, R, R, R)
     scores = selector.score_views(volumes, volumes, context)
@@ -92,18 +92,18 @@ def test_input_score_is_the_models_loss_given_each_bin_centre_alone():
 
 def test_model_batch_size_chunks_the_predictions_without_changing_the_scores():
     volumes = torch.zeros(2, R, R, R)
-    whole = ErrorGuidedSelector(k=30, score="input", model_batch_size=144)
+    whole = ErrorGuidedSelector.paper(k=30, score=InputScore(model_batch_size=144))
     context, model = _context(whole)
     reference = whole.score_views(volumes, volumes, context)
     assert model.inputs == [(144, 1, 3, 2, 2)]
-    chunked = ErrorGuidedSelector(k=30, score="input", model_batch_size=50)
+    chunked = ErrorGuidedSelector.paper(k=30, score=InputScore(model_batch_size=50))
     context, model = _context(chunked)
     torch.testing.assert_close(chunked.score_views(volumes, volumes, context), reference, rtol=0, atol=0)
     assert [shape[0] for shape in model.inputs] == [50, 50, 44]
 
 
 def test_hard_selection_with_suppression_takes_the_worst_view_first_and_keeps_the_others_apart():
-    selector = ErrorGuidedSelector(k=30, score="input", min_separation=30.0)
+    selector = ErrorGuidedSelector.paper(k=30, score="input", min_separation=30.0)
     context, _ = _context(selector)
     volumes = torch.zeros(2, R, R, R)
     views = selector.select(volumes, volumes, ["chair", "chair"], torch.Generator().manual_seed(0), context)
@@ -121,7 +121,7 @@ def test_hard_selection_with_suppression_takes_the_worst_view_first_and_keeps_th
 
 
 def test_temperature_sampling_prefers_the_bad_views_in_proportion():
-    selector = ErrorGuidedSelector(k=30, score="input", temperature=1.0, num_views=1)
+    selector = ErrorGuidedSelector.paper(k=30, score="input", temperature=1.0, num_views=1)
     volumes = torch.zeros(2, R, R, R)
     first = []
     for seed in range(300):
@@ -139,21 +139,20 @@ def test_temperature_sampling_prefers_the_bad_views_in_proportion():
     assert bool((mass > 0.45).all())
 
 
-def test_input_score_needs_a_context_and_rejects_projection_settings():
-    selector = ErrorGuidedSelector(score="input")
-    assert selector.needs_context and not ErrorGuidedSelector(score="visible").needs_context
+def test_input_score_needs_a_context_and_takes_only_its_own_options():
+    selector = ErrorGuidedSelector.paper(score="input")
+    assert selector.needs_context and not ErrorGuidedSelector.paper(score="visible").needs_context
     volumes = torch.zeros(1, R, R, R)
     with pytest.raises(ValueError, match="score='input'.*SelectionContext"):
         selector.select(volumes, volumes, ["chair"])
     context, _ = _context(selector, batch=2)
     with pytest.raises(ValueError, match="one SynthesisRequest per object: expected 1, got 2"):
         selector.select(volumes, volumes, ["chair"], context=context)
-    for name in ("mode", "mask", "reduction"):
-        value = {"mode": "soft", "mask": "gt", "reduction": "mean"}[name]
-        with pytest.raises(ValueError, match="do not apply to score='input'"):
-            ErrorGuidedSelector(score="input", **{name: value})
+    assert InputScore().settings() == {"model_batch_size": 72}
+    with pytest.raises(TypeError, match="mode"):
+        InputScore(mode="soft")  # type: ignore[call-arg]
     with pytest.raises(ValueError, match="model_batch_size"):
-        ErrorGuidedSelector(score="input", model_batch_size=0)
+        InputScore(model_batch_size=0)
 
 
 def test_the_callback_scores_input_views_with_the_model_it_starts_from(tiny_dataset, tmp_path):
@@ -163,7 +162,7 @@ def test_the_callback_scores_input_views_with_the_model_it_starts_from(tiny_data
     dm = make_datamodule(tiny_dataset, tmp_path)
     model = TinyUserModel()
     initial = copy.deepcopy(model)
-    selector = ErrorGuidedSelector(k=90, score="input")
+    selector = ErrorGuidedSelector.paper(k=90, score="input")
     callback = make_callback(selector=selector, fraction=0.15, use_pool=False)
     make_trainer(tmp_path, 1, [callback]).fit(model, datamodule=dm)
 
@@ -180,7 +179,7 @@ def test_the_callback_scores_input_views_with_the_model_it_starts_from(tiny_data
         record = records[sample["object_id"]]
         target = dm.eval_item(record, "aligned", seed=0)["voxels"][None]
         context = callback._context(_Trainer, initial, [callback._request(dm, record)])
-        scores = selector.input_scores(target, context)[0]
+        scores = selector.score_views(target, target, context)[0]
         assert float(scores.max() - scores.min()) > 1e-4  # the views are told apart
         best = set(torch.argsort(scores, descending=True)[:3].tolist())
         views = torch.as_tensor(np.asarray(sample["viewpoints"]), dtype=torch.float64)

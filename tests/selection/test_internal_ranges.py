@@ -52,14 +52,14 @@ def test_viat_refuses_a_model_that_returns_logits_at_its_candidate_views():
 
 
 def test_the_input_score_refuses_a_model_that_returns_logits():
-    selector = ErrorGuidedSelector(k=30, score="input")
+    selector = ErrorGuidedSelector.paper(k=30, score="input")
     volumes = torch.zeros(2, R, R, R)
     with pytest.raises(ValueError, match=_MESSAGE):
         selector.score_views(volumes, volumes, _context())
 
 
 def test_mvtn_refuses_non_finite_views_of_a_diverged_network(monkeypatch):
-    selector = MVTNSelector(num_views=2, steps=0)
+    selector = MVTNSelector(base_yaw=(0.0, 180.0), steps=0)
     monkeypatch.setattr(selector.network, "forward", lambda volumes: torch.full((len(volumes), 2, 2), float("nan")))
     volumes = torch.rand(1, 8, 8, 8)
     message = (

@@ -1,4 +1,4 @@
-"""``ErrorGuidedSelector(score="map")``: bins chosen from the category's measured failure map.
+"""``ErrorGuidedSelector.paper(score="map")``: bins chosen from the category's measured failure map.
 
 A fake synthesizer writes each viewpoint into its image and a fake model reconstructs an object worse the closer
 the first view of its set is to that object's bad viewpoint, with a loss (1 - IoU) known in closed form; with
@@ -23,7 +23,7 @@ from helpers import (
 )
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector
+from lightning_vtr.selection import ErrorGuidedSelector, MapScore
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.synthesis.base import SynthesisRequest
 
@@ -85,15 +85,17 @@ def _rescaled(loss: torch.Tensor) -> torch.Tensor:
 def test_every_object_gets_its_categorys_mean_measured_loss_rescaled_to_0_1():
     bad = torch.tensor([[70.0, -40.0], [90.0, -20.0], [-140.0, 70.0]])
     categories = ["chair", "chair", "table"]
-    selector = ErrorGuidedSelector(k=30, score="map", sigma=0.0, map_objects=2)
+    selector = ErrorGuidedSelector.paper(k=30, score=MapScore(objects=2), spread=0.0)
     context, model = _context(bad, 30, categories)
     full = torch.ones(3, R, R, R)
-    scores = selector.map_scores(full, categories, context, torch.Generator().manual_seed(0))
+    scores = selector.score_views(
+        full, full, context, categories=categories, generator=torch.Generator().manual_seed(0)
+    )
 
     losses = _bin_losses(bad, 30)
     chair, table = losses[:2].mean(0), losses[2]
-    torch.testing.assert_close(selector.category_maps["chair"].double(), chair, atol=1e-6, rtol=0)
-    torch.testing.assert_close(selector.category_maps["table"].double(), table, atol=1e-6, rtol=0)
+    torch.testing.assert_close(selector.score_options.category_maps["chair"].double(), chair, atol=1e-6, rtol=0)
+    torch.testing.assert_close(selector.score_options.category_maps["table"].double(), table, atol=1e-6, rtol=0)
     torch.testing.assert_close(scores[0].double(), _rescaled(chair), atol=1e-6, rtol=0)
     torch.testing.assert_close(scores[1], scores[0])  # both chairs score alike
     torch.testing.assert_close(scores[2].double(), _rescaled(table), atol=1e-6, rtol=0)
@@ -105,12 +107,12 @@ def test_every_object_gets_its_categorys_mean_measured_loss_rescaled_to_0_1():
 def test_map_objects_caps_the_measured_objects_and_momentum_blends_the_calls():
     bad = torch.tensor([[70.0, -40.0], [90.0, -20.0], [0.0, 0.0]])
     categories = ["chair"] * 3
-    selector = ErrorGuidedSelector(k=30, score="map", sigma=0.0, map_objects=1, map_momentum=0.25)
+    selector = ErrorGuidedSelector.paper(k=30, score=MapScore(objects=1, momentum=0.25), spread=0.0)
     full = torch.ones(3, R, R, R)
     context, model = _context(bad, 30, categories)
-    selector.map_scores(full, categories, context, torch.Generator().manual_seed(0))
+    selector.score_views(full, full, context, categories=categories, generator=torch.Generator().manual_seed(0))
     assert model.sets == 72  # one object measured
-    first = selector.category_maps["chair"].clone()
+    first = selector.score_options.category_maps["chair"].clone()
     losses = _bin_losses(bad, 30)
     which = [i for i in range(3) if torch.allclose(first.double(), losses[i], atol=1e-6)]
     assert len(which) == 1  # the map is exactly one object's loss
@@ -118,17 +120,20 @@ def test_map_objects_caps_the_measured_objects_and_momentum_blends_the_calls():
     # a second call with other failures: the map moves a quarter of the way to the new measurement
     moved = torch.tensor([[-150.0, 10.0]] * 3)
     context, _ = _context(moved, 30, categories)
-    selector.map_scores(full, categories, context, torch.Generator().manual_seed(1))
+    selector.score_views(full, full, context, categories=categories, generator=torch.Generator().manual_seed(1))
     new = _bin_losses(moved[:1], 30)[0]
     torch.testing.assert_close(
-        selector.category_maps["chair"].double(), first.double() + 0.25 * (new - first.double()), atol=1e-6, rtol=0
+        selector.score_options.category_maps["chair"].double(),
+        first.double() + 0.25 * (new - first.double()),
+        atol=1e-6,
+        rtol=0,
     )
 
 
 def test_hard_selection_sends_every_object_of_a_category_to_its_worst_bins():
     bad = torch.tensor([[70.0, -40.0], [70.0, -40.0], [-140.0, 70.0], [-140.0, 70.0]])
     categories = ["chair", "chair", "table", "table"]
-    selector = ErrorGuidedSelector(k=30, score="map", sigma=0.0, min_separation=30.0)
+    selector = ErrorGuidedSelector.paper(k=30, score="map", spread=0.0, min_separation=30.0)
     context, _ = _context(bad, 30, categories)
     full = torch.ones(4, R, R, R)
     views = selector.select(full, full, categories, torch.Generator().manual_seed(0), context)
@@ -146,48 +151,48 @@ def test_hard_selection_sends_every_object_of_a_category_to_its_worst_bins():
 
 def test_a_flat_map_prefers_no_bin_and_falls_back_to_uniform_views():
     bad = torch.tensor([[0.0, 0.0]])
-    selector = ErrorGuidedSelector(k=30, score="map", sigma=0.0)
+    selector = ErrorGuidedSelector.paper(k=30, score="map", spread=0.0)
     context, model = _context(bad, 30, ["chair"])
     model.predict_voxels = lambda images: torch.ones(len(images), R, R, R)  # never fails: a flat map
     full = torch.ones(1, R, R, R)
     selector.select(full, full, ["chair"], torch.Generator().manual_seed(0), context)
-    assert torch.equal(selector.category_maps["chair"], torch.zeros(72))
+    assert torch.equal(selector.score_options.category_maps["chair"], torch.zeros(72))
     assert selector.last_fallback.tolist() == [True]
 
 
 def test_the_maps_survive_a_state_round_trip_and_a_wrong_grid_is_refused():
-    selector = ErrorGuidedSelector(k=30, score="map")
-    selector.category_maps = {"chair": torch.linspace(0, 1, 72)}
-    restored = ErrorGuidedSelector(k=30, score="map")
+    selector = ErrorGuidedSelector.paper(k=30, score="map")
+    selector.score_options.category_maps = {"chair": torch.linspace(0, 1, 72)}
+    restored = ErrorGuidedSelector.paper(k=30, score="map")
     restored.load_state_dict(selector.state_dict())
-    assert torch.equal(restored.category_maps["chair"], selector.category_maps["chair"])
-    assert ErrorGuidedSelector(score="visible").state_dict() == {}
+    assert torch.equal(restored.score_options.category_maps["chair"], selector.score_options.category_maps["chair"])
+    assert ErrorGuidedSelector.paper(score="visible").state_dict() == {}
     with pytest.raises(ValueError, match=r"'chair' has shape \(72,\); this selector \(k=90\) has 8 bins"):
-        ErrorGuidedSelector(k=90, score="map").load_state_dict(selector.state_dict())
+        ErrorGuidedSelector.paper(k=90, score="map").load_state_dict(selector.state_dict())
 
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"mode": "soft"}, "do not apply to score='map'"),
-        ({"relative": True}, "relative=True` does not apply to score='map'"),
-        ({"map_objects": 0}, "map_objects"),
-        ({"map_momentum": 0.0}, "map_momentum"),
-        ({"map_momentum": 1.5}, "map_momentum"),
+        ({"objects": 0}, "objects"),
+        ({"momentum": 0.0}, "momentum"),
+        ({"momentum": 1.5}, "momentum"),
     ],
 )
 def test_bad_map_settings_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        ErrorGuidedSelector(score="map", **kwargs)
+        MapScore(**kwargs)
+    with pytest.raises(ValueError, match="relative=True` does not apply to score='map'"):
+        ErrorGuidedSelector.paper(score="map", relative=True)
 
 
 def test_the_map_score_needs_a_context_and_whole_categories():
-    selector = ErrorGuidedSelector(score="map")
+    selector = ErrorGuidedSelector.paper(score="map")
     assert selector.needs_context and selector.batched
     full = torch.ones(1, R, R, R)
     with pytest.raises(ValueError, match="needs a SelectionContext"):
         selector.select(full, full, ["chair"], torch.Generator().manual_seed(0), None)
-    with pytest.raises(ValueError, match="call select"):
+    with pytest.raises(ValueError, match="pass `categories`"):
         selector.score_views(full, full)
 
 
@@ -197,7 +202,7 @@ def test_the_callback_measures_the_category_maps_and_sends_each_category_to_its_
     category, and the maps are in the callback's saved state."""
     L.seed_everything(0, verbose=False)
     dm = make_datamodule(tiny_dataset, tmp_path)
-    selector = ErrorGuidedSelector(k=90, score="map", sigma=0.0, map_objects=1)
+    selector = ErrorGuidedSelector.paper(k=90, score=MapScore(objects=1), spread=0.0)
     callback = make_callback(selector=selector, fraction=0.3, use_pool=False, select_at_start=True)
     make_trainer(tmp_path, 1, [callback]).fit(TinyUserModel(), datamodule=dm)
 

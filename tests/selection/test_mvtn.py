@@ -165,8 +165,8 @@ def test_deterministic_and_state_round_trip(tmp_path):
     fresh = MVTNSelector(steps=3, seed=99)
     assert not torch.equal(restored.select(predicted, target, ["a", "b"]), fresh.select(predicted, target, ["a", "b"]))
 
-    with pytest.raises(ValueError, match="num_views"):
-        MVTNSelector(num_views=2).load_state_dict(first.state_dict())
+    with pytest.raises(ValueError, match="another number of base yaws"):
+        MVTNSelector(base_yaw=(0.0, 180.0)).load_state_dict(first.state_dict())
 
 
 def test_trains_under_inference_mode():
@@ -182,7 +182,7 @@ def test_trains_under_inference_mode():
     ("kwargs", "match"),
     [
         ({"base_pitch": 90.0}, "base_pitch"),
-        ({"base_yaw": [0.0]}, "base_yaw"),
+        ({"base_yaw": []}, "base_yaw"),
         ({"input": "mesh"}, "input"),
         ({"lr": -1.0}, "lr"),
         ({"max_yaw_offset": 200.0}, "max_yaw_offset"),

@@ -395,7 +395,7 @@ def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids(device):
 def test_every_interior_voxel_is_culled_for_the_candidate_views():
     # For the selector's candidate views, each octant's voxels with all 7 neighbours towards the cameras
     # inside the grid are occludable: a solid's interior never reaches the scatter.
-    from lightning_vtr.selection.projection import _projection_table
+    from lightning_vtr.selection.first_hit import _projection_table
 
     res = 12
     table = _projection_table(res, candidate_viewpoints(30), res, math.sqrt(3) / 2, torch.device("cpu"))

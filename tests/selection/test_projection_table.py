@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lightning_vtr.selection.projection import _smallest_hitting_sets
+from lightning_vtr.selection.first_hit import _smallest_hitting_sets
 
 
 def _direct(hides: torch.Tensor, own: int) -> torch.Tensor:

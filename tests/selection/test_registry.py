@@ -65,7 +65,7 @@ def test_paper_names_the_papers_exact_selector_and_takes_overrides():
         30,
         3,
     )
-    assert repr(paper) == repr(ErrorGuidedSelector())  # the selector's own defaults are the paper's today
+    assert paper.settings() == ErrorGuidedSelector.paper().settings()
     assert make_selector("paper", k=15).k == 15
     assert make_selector("paper", temperature=3.0).temperature == 3.0
     assert "paper" not in SELECTORS  # a preset, not a row of the paper's Table 1

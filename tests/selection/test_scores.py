@@ -6,7 +6,15 @@ import pytest
 import torch
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector, error_projection, error_volume, view_scores
+from lightning_vtr.selection import (
+    ErrorGuidedSelector,
+    PaperScore,
+    ReleasedScore,
+    VisibleScore,
+    error_projection,
+    error_volume,
+    view_scores,
+)
 from lightning_vtr.selection.projection import visible_error_scores
 
 R = 32
@@ -76,14 +84,14 @@ def test_released_score_averages_the_soft_error_on_the_visible_truth():
     down, up = view_scores(error_projection(errors, straight), reduction="mean")[0].tolist()
     assert down == pytest.approx(0.5) and up == pytest.approx(0.05)
     # the selector's "released" score is exactly this rule on its candidate views
-    selector = ErrorGuidedSelector(score="released")
+    selector = ErrorGuidedSelector.paper(score="released")
     expected = view_scores(error_projection(errors, selector.candidates), reduction="mean")
     torch.testing.assert_close(selector.score_views(predicted, target), expected)
 
 
 def test_selector_with_visible_score_picks_views_from_above():
     predicted, target = _block_with_wrong_top_slab()
-    selector = ErrorGuidedSelector(score="visible")
+    selector = ErrorGuidedSelector.paper(score="visible")
     selector.select(predicted, target, ["block"], generator=torch.Generator().manual_seed(0))
     chosen = selector.candidates[selector.last_bins[0]]
     assert (chosen[:, 1] > 0).all()
@@ -97,12 +105,15 @@ def test_paper_score_ties_every_bin_with_its_antipode_and_nms_breaks_the_mirror_
     predicted, target = _block_with_wrong_top_slab()
     candidates = candidate_viewpoints(30)
     antipode = angular_distance(candidates[:, None], candidates[None]).argmax(1)
-    paper = ErrorGuidedSelector(score="paper")
+    paper = ErrorGuidedSelector.paper(score="paper")
     scores = paper.score_views(predicted, target)[0]
     assert torch.equal(scores, scores[antipode])
     mirrored, separated = 0, 0
     for seed in range(20):
-        for selector, counter in ((ErrorGuidedSelector(), "plain"), (ErrorGuidedSelector(min_separation=0.0), "nms")):
+        for selector, counter in (
+            (ErrorGuidedSelector.paper(), "plain"),
+            (ErrorGuidedSelector.paper(min_separation=0.0), "nms"),
+        ):
             selector.select(predicted, target, ["block"], generator=torch.Generator().manual_seed(seed))
             views = selector.candidates[selector.last_bins[0]]
             far = angular_distance(views[:, None], views[None]).max().item() > 179.0
@@ -115,20 +126,16 @@ def test_paper_score_ties_every_bin_with_its_antipode_and_nms_breaks_the_mirror_
 
 
 def test_score_presets_and_overrides():
-    assert (ErrorGuidedSelector().mode, ErrorGuidedSelector().mask, ErrorGuidedSelector().reduction) == (
-        "binary",
-        None,
-        "sum",
-    )
-    released = ErrorGuidedSelector(score="released")
-    assert (released.mode, released.mask, released.reduction) == ("soft", "gt", "mean")
-    custom = ErrorGuidedSelector(score="released", mask="none", reduction="sum")
-    assert (custom.mode, custom.mask, custom.reduction) == ("soft", None, "sum")
+    assert ErrorGuidedSelector.paper().score_options == PaperScore(mode="binary", mask="none", reduction="sum")
+    released = ErrorGuidedSelector.paper(score="released").score_options
+    assert released == ReleasedScore(mode="soft", mask="gt", reduction="mean", eps=0.0)
+    custom = ErrorGuidedSelector.paper(score=ReleasedScore(mask="none", reduction="sum")).score_options
+    assert (custom.mode, custom.mask, custom.reduction) == ("soft", "none", "sum")
     with pytest.raises(
         ValueError, match="`score` must be one of 'paper', 'released', 'visible', 'input', 'map', got 'area'"
     ):
-        ErrorGuidedSelector(score="area")
-    with pytest.raises(ValueError, match="`mask` and `reduction` do not apply to score='visible'"):
-        ErrorGuidedSelector(score="visible", reduction="mean")
+        ErrorGuidedSelector.paper(score="area")
+    with pytest.raises(TypeError, match="reduction"):
+        VisibleScore(reduction="mean")  # type: ignore[call-arg]
     with pytest.raises(ValueError, match="`min_separation` must be a number in"):
-        ErrorGuidedSelector(min_separation=200.0)
+        ErrorGuidedSelector.paper(min_separation=200.0)

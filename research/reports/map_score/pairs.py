@@ -2,7 +2,7 @@
 
 Run from the repository root after the report this folder holds was made:
 
-    python docs/report/map_score/pairs.py runs/report_map
+    python research/reports/map_score/pairs.py runs/report_map
 
 It reads ``seed_<s>/<strategy>/results.json`` of the report, takes mIoU@0.4 (in points) per seed, and prints,
 for each map rule against each other row, the mean paired difference over seeds with its 95 % Student-t

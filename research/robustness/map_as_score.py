@@ -1,7 +1,7 @@
 """Does the training objects' robustness map, pooled per category, predict a test object's failures?
 
 Run from the repository root after `python examples/pix2vox_vtr.py` and the `lightning-vtr robustness ...
---out robustness` command on docs/results.md; prints one validity table per checkpoint.
+--out robustness` command in research/notes/results.md; prints one validity table per checkpoint.
 """
 
 import sys
