@@ -8,9 +8,14 @@ Rows, most valuable first (nothing is downloaded; every model has random weights
   components) in fp16, 50 DDIM steps with guidance 3.0: seconds per image at batch 1 and 8, peak memory.
 * ``selection: <score>``: :class:`~lightning_vtr.selection.ErrorGuidedSelector` objects/s at K = 30 for the
   ``paper``, ``released`` and ``visible`` scores (``benchmarks/view_selection.py``'s objects and timer).
-* ``fit: Pix2Vox++ tiny + callback``: tiny Pix2Vox++ trained 2 epochs in ``bf16-mixed`` with
-  :class:`~lightning_vtr.ErrorGuidedViewAugmentation` and mesh rendering, on a procedural dataset built in a
-  temporary folder: seconds, final loss, generated samples. Needs the renderer (see below).
+* ``fit: Pix2Vox++ tiny + callback`` and ``fit: LRGT tiny + callback``: the tiny preset trained 2 epochs in
+  ``bf16-mixed`` with :class:`~lightning_vtr.ErrorGuidedViewAugmentation`: generated samples (asserted > 0),
+  seconds, final loss (asserted finite). The dataset is ``--dataset DIR`` (built beforehand with
+  ``--build-dataset DIR``, as ``benchmarks/gpu_prepare.sh`` does: 3 procedural categories x 6 objects, 64 px,
+  3 views per set, R = 32), else one rendered in a temporary folder. The synthesizer is mesh rendering; when
+  the renderer probe fails (or with ``--no-render``) and ``--dataset`` is given, it is Zero-1-to-3 with the
+  tests' tiny random model (float16 on CUDA, 2 DDIM steps), and neither pyrender nor OpenGL is imported. The
+  table names the synthesizer: ``fit: LRGT tiny + callback (bf16-mixed, zero123 tiny)``.
 * ``train: <model> 32-true``: the training rows in float32, for reference.
 
 How it runs, so that a run stopped anywhere still leaves a table:
@@ -28,17 +33,22 @@ How it runs, so that a run stopped anywhere still leaves a table:
   with the whole table; each child's output goes to ``OUT/logs/<row>.log``.
 * After ``--budget-s`` seconds no row starts; the rows left are listed as skipped, by name.
 * The first row that renders starts with a renderer probe (pyrender with EGL, one 32 px view of a box, in a
-  child process with a timeout); if the probe fails, the rendering rows are skipped with its error.
-* On a CPU the full-size rows are refused; ``--tiny`` shrinks every row for a CPU smoke run (a 10-object
-  dataset and one training batch per epoch, selection on 4 objects at R = 16, the tests' tiny Zero-1-to-3 in
-  float32 at 2 DDIM steps, tiny presets at batch 1). The exit status is 0 when every row ran without error.
+  child process with a timeout); if the probe fails, the fit rows run with Zero-1-to-3 instead (with
+  ``--dataset``) or are skipped with its error (without). ``--no-render`` skips the probe and goes the same way.
+* On a CPU the full-size rows are refused; ``--tiny`` shrinks every row for a CPU smoke run (without
+  ``--dataset`` a 10-object dataset; one training batch per epoch, selection on 4 objects at R = 16, the tests'
+  tiny Zero-1-to-3 in float32 at 2 DDIM steps, tiny presets at batch 1). The exit status is 0 when every row
+  ran without error (the renderer probe's row skipped by ``--no-render`` aside).
 
 Run::
 
-    benchmarks/gpu_prepare.sh                                                       # here: fetch the wheels
-    python3 benchmarks/gpu_check.py --wheels .gpu_wheels --out OUT --budget-s 420   # on the GPU machine
+    benchmarks/gpu_prepare.sh        # here: fetch the wheels into .gpu_wheels, build .gpu_dataset
+    python3 benchmarks/gpu_check.py --wheels .gpu_wheels --dataset .gpu_dataset --out OUT --budget-s 420  # GPU
     python benchmarks/gpu_check.py --tiny --device cpu --budget-s 120 --out OUT     # CPU smoke run
     python benchmarks/gpu_check.py --rows zero123,"fit: Pix2Vox++ tiny + callback" --out OUT  # some rows only
+    python benchmarks/gpu_check.py --build-dataset .gpu_dataset  # only the fit rows' dataset (needs OpenGL)
+    python3 benchmarks/gpu_check.py --wheels .gpu_wheels --dataset .gpu_dataset --out OUT --budget-s 300 \
+        --no-render --rows "fit: Pix2Vox++ tiny + callback,fit: LRGT tiny + callback"  # fit rows, no OpenGL
 """
 
 from __future__ import annotations
@@ -48,6 +58,7 @@ import contextlib
 import importlib
 import importlib.util
 import json
+import math
 import os
 import re
 import signal
@@ -68,9 +79,25 @@ ROOT = _HERE.parent
 if str(ROOT) not in sys.path:  # `python benchmarks/gpu_check.py` puts benchmarks/, not the root, first
     sys.path.insert(0, str(ROOT))
 
-#: share of the training objects given new views per selection in the fit row; its 2 epochs select twice (before
-#: epoch 0 and after it), so it generates ``2 * round(FIT_FRACTION * train objects)`` samples
+#: share of the training objects given new views per selection in the fit rows; their 2 epochs select twice
+#: (before epoch 0 and after it), so they generate ``2 * round(FIT_FRACTION * train objects)`` samples
 FIT_FRACTION = 0.34
+#: the fit rows' dataset: ``--build-dataset DIR`` (run by benchmarks/gpu_prepare.sh) builds it for ``--dataset DIR``;
+#: without ``--dataset`` a fit row renders it in a temporary folder (3 x 6 objects split 4/1/1 per category)
+FIT_DATASET: dict[str, Any] = dict(
+    categories=["chair", "table", "airplane"], objects_per_category=6, image_size=64, resolution=32, views_per_set=3
+)
+#: ``--tiny`` without ``--dataset``: 2 x 5 objects split 3/1/1 per category, 32 px
+TINY_FIT_DATASET: dict[str, Any] = dict(
+    categories=["chair", "table"], objects_per_category=5, split=(0.6, 0.2, 0.2), image_size=32, resolution=32,
+    views_per_set=4,
+)  # fmt: skip
+#: check name (as ``--rows`` takes it) -> model of the fit rows; the table adds the precision and synthesizer,
+#: e.g. ``fit: LRGT tiny + callback (bf16-mixed, zero123 tiny)``
+FIT_ROWS = {"fit: Pix2Vox++ tiny + callback": "pix2vox", "fit: LRGT tiny + callback": "lrgt"}
+#: the fit rows' synthesizers and their names in the table: ``render`` (mesh rendering; needs OpenGL) and
+#: ``zero123`` (Zero-1-to-3 with the random model of :func:`tiny_zero123_components`; float16 on CUDA; no OpenGL)
+FIT_SYNTHS = {"render": "render", "zero123": "zero123 tiny"}
 SCORES = ("paper", "released", "visible")
 MODELS = {"pix2vox": "Pix2Vox++", "lrgt": "LRGT"}
 #: seconds a probe child process may take (environment report, renderer probe)
@@ -105,6 +132,10 @@ class RowSpec:
     timeout_s: float
     needs_renderer: bool = False
     full_size: bool = False
+    #: run instead of this row when the renderer failed or is off (``needs_renderer`` rows); ``None``: skip it
+    without_renderer: RowSpec | None = None
+    #: added to the skip reason of a ``needs_renderer`` row without ``without_renderer``
+    without_renderer_hint: str = ""
 
 
 # ============================================================================================ the child rows
@@ -148,42 +179,134 @@ def _memory_name(device: Any) -> str:
     return "peak GiB" if device.type == "cuda" else "peak RSS GiB"
 
 
-def fit_row(device: Any, tiny: bool) -> Row:
-    """Tiny Pix2Vox++ with the callback (render synthesizer), 2 epochs in bf16-mixed on a fresh procedural dataset."""
+def tiny_zero123_components(seed: int = 0) -> dict[str, Any]:
+    """A random 64 px Zero-1-to-3 model (the tests' tiny architecture; built here, as the device has no pytest).
+
+    Returns:
+        ``unet``, ``vae``, ``image_encoder``, ``projection`` and ``scheduler`` for
+        :class:`~lightning_vtr.synthesis.zero123.Zero123Synthesizer`.
+    """
+    import torch
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+
+    from lightning_vtr.synthesis.zero123_checkpoint import REFERENCE_DDIM
+
+    torch.manual_seed(seed)
+    unet = UNet2DConditionModel(
+        sample_size=8,
+        in_channels=8,
+        out_channels=4,
+        block_out_channels=(32, 64),
+        layers_per_block=1,
+        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+        cross_attention_dim=32,
+        attention_head_dim=8,
+        norm_num_groups=8,
+    )
+    vae = AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        down_block_types=("DownEncoderBlock2D",) * 4,
+        up_block_types=("UpDecoderBlock2D",) * 4,
+        block_out_channels=(8, 8, 16, 16),
+        latent_channels=4,
+        norm_num_groups=8,
+        layers_per_block=1,
+        sample_size=64,
+    )
+    clip = CLIPVisionConfig(
+        hidden_size=32,
+        intermediate_size=37,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        image_size=224,
+        patch_size=32,
+        projection_dim=32,
+    )
+    image_encoder = CLIPVisionModelWithProjection(clip)
+    projection = torch.nn.Linear(32 + 4, 32)
+    scheduler = DDIMScheduler(**REFERENCE_DDIM)
+    return dict(unet=unet, vae=vae, image_encoder=image_encoder, projection=projection, scheduler=scheduler)
+
+
+def build_fit_dataset(root: Path, tiny: bool) -> None:
+    """Build the fit rows' procedural dataset in ``root`` (:data:`FIT_DATASET`, :data:`TINY_FIT_DATASET` with
+    ``tiny``); it renders, so it needs OpenGL."""
+    from lightning_vtr.data.builder import build_dataset
+
+    spec = TINY_FIT_DATASET if tiny else FIT_DATASET
+    build_dataset(root, source="procedural", seed=0, workers=1, progress=False, **spec)
+
+
+def fit_row(device: Any, tiny: bool, name: str, synth: str, dataset: Path | None) -> Row:
+    """Tiny ``name`` (``pix2vox`` or ``lrgt``) with the callback, 2 epochs in bf16-mixed.
+
+    Args:
+        device: where to train (and synthesize).
+        tiny: one training batch per epoch, batch 4 (else every batch, batch 8); without ``dataset``, the
+            smaller :data:`TINY_FIT_DATASET`.
+        name: the model, a key of :data:`MODELS`.
+        synth: ``"render"`` (:class:`~lightning_vtr.synthesis.render.RenderSynthesizer`) or ``"zero123"``
+            (:class:`~lightning_vtr.synthesis.zero123.Zero123Synthesizer` with :func:`tiny_zero123_components`,
+            float16 on CUDA and float32 on a CPU, 2 DDIM steps); only ``"render"`` imports pyrender.
+        dataset: a dataset folder (``--build-dataset``); ``None`` renders one in a temporary folder.
+
+    Raises:
+        RuntimeError: no sample was generated, or the final loss is not finite.
+    """
     import lightning as L
+    import torch
 
     from lightning_vtr import ErrorGuidedViewAugmentation, VTRDataModule
-    from lightning_vtr.data.builder import build_dataset
-    from lightning_vtr.models import Pix2VoxPlusPlus
-    from lightning_vtr.synthesis.render import RenderSynthesizer
+    from lightning_vtr.data.format import load_metadata
+    from lightning_vtr.models import LRGT, Pix2VoxPlusPlus
+    from lightning_vtr.synthesis.base import Synthesizer
     from lightning_vtr.utils.feedback import silence_lightning_tips
 
     silence_lightning_tips()
-    data: dict[str, Any]
-    if tiny:  # 2 x 5 objects split 3/1/1 per category
-        data = dict(categories=["chair", "table"], objects_per_category=5, split=(0.6, 0.2, 0.2), image_size=32)
-        data.update(views_per_set=4, workers=1)
-    else:  # the tests' dataset: 3 x 10 objects split 7/1/2
-        data = dict(categories=["chair", "table", "airplane"], objects_per_category=10, image_size=64)
-        data.update(views_per_set=8, workers=max(1, min(8, (os.cpu_count() or 1) // 2)))
-    render_size = data["image_size"]
     with tempfile.TemporaryDirectory(prefix="gpu_check_") as tmp:
-        start = time.perf_counter()
-        build_dataset(Path(tmp) / "data", source="procedural", resolution=32, seed=0, progress=False, **data)
-        build_s = time.perf_counter() - start
+        build_s = 0.0
+        if dataset is None:
+            start = time.perf_counter()
+            dataset = Path(tmp) / "data"
+            build_fit_dataset(dataset, tiny)
+            build_s = time.perf_counter() - start
+        image_size = int(load_metadata(dataset)["image_size"])
+        synthesizer: Synthesizer
+        if synth == "render":
+            from lightning_vtr.synthesis.render import RenderSynthesizer
+
+            synthesizer = RenderSynthesizer(image_size=image_size)
+            synth_setup = f"render {image_size} px"
+        elif synth == "zero123":
+            from lightning_vtr.synthesis.zero123 import Zero123Synthesizer
+
+            dtype = torch.float16 if device.type == "cuda" else torch.float32
+            components = tiny_zero123_components()
+            for key, module in components.items():
+                if isinstance(module, torch.nn.Module):
+                    components[key] = module.to(device=device, dtype=dtype)
+            synthesizer = Zero123Synthesizer(
+                **components, num_inference_steps=2, image_size=image_size, device=device, dtype=dtype,
+                weights_id="random tiny",
+            )  # fmt: skip
+            dtype_name = str(dtype).removeprefix("torch.")
+            synth_setup = f"Zero-1-to-3 tiny random weights {synthesizer.resolution} px, {dtype_name}, 2 DDIM steps"
+        else:
+            raise ValueError(f"--fit-synth: expected one of {sorted(FIT_SYNTHS)}, got {synth!r}")
         L.seed_everything(0, verbose=False)
-        model = Pix2VoxPlusPlus(preset="tiny", validation_fscore=False)
+        model = {"pix2vox": Pix2VoxPlusPlus, "lrgt": LRGT}[name](preset="tiny", validation_fscore=False)
         dm = VTRDataModule(
-            str(Path(tmp) / "data"),
+            str(dataset),
             image_size=model.image_size,
             batch_size=4 if tiny else 8,
+            recipe=type(model).image_recipe,
             generated_dir=f"{tmp}/gen",
         )
         callback = ErrorGuidedViewAugmentation(
-            synthesizer=RenderSynthesizer(image_size=render_size),
-            fraction=FIT_FRACTION,
-            progress_bar=False,
-            log_images=False,
+            synthesizer=synthesizer, fraction=FIT_FRACTION, progress_bar=False, log_images=False
         )
         trainer = L.Trainer(
             max_epochs=2,
@@ -204,18 +327,30 @@ def fit_row(device: Any, tiny: bool) -> Row:
         trainer.fit(model, datamodule=dm)
         seconds = time.perf_counter() - start
         loss = trainer.callback_metrics["train/loss"]
-        results = {
+        generated = len(dm.generated_samples)
+        results: dict[str, float] = {
+            "generated samples": generated,
             "seconds": seconds,
             "final loss": float(loss),
-            "generated samples": len(dm.generated_samples),
             "train objects": len(dm.split_records("train")),
-            "dataset build s": build_s,
         }
+        if build_s:
+            results["dataset build s"] = build_s
+    if generated == 0:
+        raise RuntimeError(f"the callback generated no sample in 2 epochs (fraction {FIT_FRACTION}, {synth_setup})")
+    if not math.isfinite(results["final loss"]):
+        raise RuntimeError(f"the final training loss is {results['final loss']} (not finite)")
     setup = (
         f"{device.type}, bf16-mixed, 2 epochs{' of 1 batch' if tiny else ''}, batch {dm.batch_size}, "
-        f"fraction {FIT_FRACTION}, render {render_size} px, loss dtype {str(loss.dtype).removeprefix('torch.')}"
+        f"fraction {FIT_FRACTION}, {synth_setup}, {image_size} px dataset, "
+        f"loss dtype {str(loss.dtype).removeprefix('torch.')}"
     )
-    return Row("fit: Pix2Vox++ tiny + callback", setup, results)
+    return Row(fit_check(name, synth), setup, results)
+
+
+def fit_check(name: str, synth: str) -> str:
+    """The table's name of a fit row: ``fit: <model> tiny + callback (bf16-mixed, <synthesizer>)``."""
+    return f"fit: {MODELS[name]} tiny + callback (bf16-mixed, {FIT_SYNTHS[synth]})"
 
 
 def selection_row(device: Any, tiny: bool, score: str) -> Row:
@@ -245,8 +380,7 @@ def zero123_row(device: Any, tiny: bool) -> Row:
     bench = _load(_HERE / "zero123.py", "_gpu_check_zero123")
     torch.manual_seed(0)
     if tiny:  # the tests' tiny model: 64 x 64
-        fixtures = _load(ROOT / "tests" / "synthesis" / "conftest.py", "_gpu_check_zero123_fixtures")
-        components, dtype, steps, size = fixtures.build_tiny_components(), torch.float32, 2, "tiny 64 px"
+        components, dtype, steps, size = tiny_zero123_components(), torch.float32, 2, "tiny 64 px"
     else:  # built on the device: random initialisation of ~1.2 G parameters is slow on the CPU
         with torch.device(device):
             components = bench.full_size_components()
@@ -313,15 +447,23 @@ def train_row(device: Any, tiny: bool, name: str, precision: str) -> Row:
     return Row(f"train: {MODELS[name]} {precision}", setup, results)
 
 
-def row_functions(tiny: bool) -> dict[str, tuple[Callable[[Any], Row], float, bool]]:
-    """``check -> (function of the device, full-size timeout in s, needs the renderer)``, in table order."""
+def row_functions(
+    tiny: bool, fit_synth: str = "render", dataset: Path | None = None
+) -> dict[str, tuple[Callable[[Any], Row], float, bool]]:
+    """``check -> (function of the device, full-size timeout in s, needs the renderer)``, in table order.
+
+    ``fit_synth`` and ``dataset`` are the fit rows' synthesizer and dataset (see :func:`fit_row`); their rows
+    need the renderer when either renders.
+    """
     out: dict[str, tuple[Callable[[Any], Row], float, bool]] = {}
     for name, label in MODELS.items():
         out[f"train: {label} bf16-mixed"] = (lambda d, n=name: train_row(d, tiny, n, "bf16-mixed"), 150.0, False)
     out["zero123"] = (lambda d: zero123_row(d, tiny), 240.0, False)
     for score in SCORES:
         out[f"selection: {score}"] = (lambda d, s=score: selection_row(d, tiny, s), 90.0, False)
-    out["fit: Pix2Vox++ tiny + callback"] = (lambda d: fit_row(d, tiny), 240.0, True)
+    renders = fit_synth == "render" or dataset is None
+    for check, name in FIT_ROWS.items():
+        out[check] = (lambda d, n=name: fit_row(d, tiny, n, fit_synth, dataset), 150.0, renders)
     for name, label in MODELS.items():
         out[f"train: {label} 32-true"] = (lambda d, n=name: train_row(d, tiny, n, "32-true"), 150.0, False)
     return out
@@ -336,14 +478,16 @@ def _error_text(err: BaseException) -> str:
     return f"{type(err).__name__}: {first}"[:300]
 
 
-def _child_row(check: str, device_name: str, tiny: bool, result: Path) -> int:
+def _child_row(
+    check: str, device_name: str, tiny: bool, result: Path, fit_synth: str = "render", dataset: Path | None = None
+) -> int:
     """Run one row in this (child) process and write its JSON to ``result``; 0, or 1 when the row failed."""
     import torch
 
     device = torch.device(device_name)
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
-    fn = row_functions(tiny)[check][0]
+    fn = row_functions(tiny, fit_synth, dataset)[check][0]
     try:
         row = fn(device)
         payload: dict[str, Any] = {"setup": row.setup, "results": row.results}
@@ -665,6 +809,7 @@ def run_table(
     budget_s: float,
     start: float,
     renderer_probe: RowSpec | None = None,
+    renderer_off: str | None = None,
     refuse_full_size: str | None = None,
     env: Mapping[str, str] | None = None,
     info: Mapping[str, Any] | None = None,
@@ -678,13 +823,17 @@ def run_table(
         budget_s: seconds after ``start`` (a ``time.perf_counter()`` value) when no row may run any longer:
             a running row is stopped there, the rows after it are skipped by name.
         renderer_probe: run (once, as a row of the table) before the first row with ``needs_renderer``;
-            when it fails those rows are skipped with its error. ``None``: no probe.
+            when it fails, each of those rows runs its ``without_renderer`` row instead, or is skipped with
+            the probe's error (and its ``without_renderer_hint``). ``None``: no probe.
+        renderer_off: the reason the renderer is not to be used (e.g. ``--no-render``): the probe's row is
+            skipped with it and the ``needs_renderer`` rows go as after a failed probe. ``None``: probe it.
         refuse_full_size: reason for skipping every row with ``full_size``; ``None`` runs them.
         env: environment of the child processes (``None``: this process's).
         info: the environment report, stored in the JSON's first line.
 
     Returns:
-        The table's rows: ``specs`` in order, with the probe's row before the first rendering row.
+        The table's rows: ``specs`` in order (a ``without_renderer`` row in the place of its row), with the
+        probe's row before the first row with ``needs_renderer``.
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "logs").mkdir(exist_ok=True)
@@ -710,17 +859,26 @@ def run_table(
         if refuse_full_size is not None and spec.full_size:
             table.add(Row(spec.check, skipped=refuse_full_size))
             continue
-        if spec.needs_renderer and renderer_probe is not None:
+        if spec.needs_renderer and (renderer_probe is not None or renderer_off is not None):
             if not probed:
                 probed = True
-                probe = run(renderer_probe)
-                table.add(probe)
-                if probe.error:
-                    renderer_error = f"renderer probe failed: {probe.error}"
-                elif probe.skipped:
-                    renderer_error = probe.skipped
+                if renderer_off is not None:
+                    check = renderer_probe.check if renderer_probe is not None else "renderer probe"
+                    table.add(Row(check, skipped=renderer_off))
+                    renderer_error = renderer_off
+                else:
+                    assert renderer_probe is not None
+                    probe = run(renderer_probe)
+                    table.add(probe)
+                    if probe.error:
+                        renderer_error = f"renderer probe failed: {probe.error}"
+                    elif probe.skipped:
+                        renderer_error = probe.skipped
             if renderer_error is not None:
-                table.add(Row(spec.check, skipped=renderer_error))
+                if spec.without_renderer is not None:
+                    table.add(run(spec.without_renderer))
+                else:
+                    table.add(Row(spec.check, skipped=renderer_error + spec.without_renderer_hint))
                 continue
         table.add(run(spec))
     return table.rows
@@ -738,6 +896,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--row-timeout-s", type=float, help="one timeout for every row (default: each row's own)")
     parser.add_argument("--rows", help="comma-separated checks to run, in table order (default: all)")
     parser.add_argument("--wheels", type=Path, help="folder of wheels to install into WHEELS/site first")
+    parser.add_argument(
+        "--dataset", type=Path, help="the fit rows' dataset, built by --build-dataset (default: rendered in the row)"
+    )
+    parser.add_argument(
+        "--no-render",
+        action="store_true",
+        help="no renderer probe; the fit rows use zero123 tiny (needs --dataset) as after a failed probe",
+    )
+    parser.add_argument("--build-dataset", type=Path, metavar="DIR", help="only build the fit rows' dataset in DIR")
+    parser.add_argument("--fit-synth", default="render", choices=sorted(FIT_SYNTHS), help=argparse.SUPPRESS)
     parser.add_argument("--site", type=Path, help=argparse.SUPPRESS)  # children: append to sys.path
     parser.add_argument("--child-row", help=argparse.SUPPRESS)
     parser.add_argument("--child-environment", action="store_true", help=argparse.SUPPRESS)
@@ -745,8 +913,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     if argv is None:
         argv = sys.argv[1:]
-    child = any(a.startswith("--child-") for a in argv)
-    if child:  # a child needs no --out
+    child = any(a.startswith(("--child-", "--build-dataset")) for a in argv)
+    if child:  # a child (or a dataset build) needs no --out
         for action in parser._actions:
             action.required = False
     args = parser.parse_args(argv)
@@ -757,7 +925,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.child_renderer:
         return _child_renderer(args.result)
     if args.child_row:
-        return _child_row(args.child_row, args.device, args.tiny, args.result)
+        return _child_row(args.child_row, args.device, args.tiny, args.result, args.fit_synth, args.dataset)
+    if args.build_dataset is not None:
+        build_fit_dataset(args.build_dataset, args.tiny)
+        print(f"built the fit rows' dataset in {args.build_dataset} ({'tiny' if args.tiny else 'full'})")
+        return 0
+    dataset: Path | None = None
+    if args.dataset is not None:
+        dataset = args.dataset.resolve()
+        if not (dataset / "metadata.json").is_file():
+            parser.error(f"--dataset {args.dataset}: no metadata.json there (build it with --build-dataset DIR)")
 
     start = time.perf_counter()
     out: Path = args.out.resolve()
@@ -807,19 +984,38 @@ def main(argv: list[str] | None = None) -> int:
             timeout = args.row_timeout_s
         elif args.tiny:
             timeout = 120.0
-        specs.append(RowSpec(check, [*base, "--child-row", check], timeout, needs_renderer, full_size=not args.tiny))
+        command = [*base, "--child-row", check]
+        if check not in FIT_ROWS:
+            specs.append(RowSpec(check, command, timeout, needs_renderer, full_size=not args.tiny))
+            continue
+        command += ["--dataset", str(dataset)] if dataset is not None else []
+        name = FIT_ROWS[check]
+        fallback = None
+        if dataset is not None:  # the zero123 row: no OpenGL anywhere on its path
+            zero123 = [*command, "--fit-synth", "zero123"]
+            fallback = RowSpec(fit_check(name, "zero123"), zero123, timeout, full_size=not args.tiny)
+        spec = RowSpec(
+            fit_check(name, "render"), [*command, "--fit-synth", "render"], timeout, needs_renderer,
+            full_size=not args.tiny, without_renderer=fallback,
+            without_renderer_hint="; without --dataset DIR (built by --build-dataset DIR) the row renders its dataset",
+        )  # fmt: skip
+        specs.append(spec)
     probe = RowSpec("renderer probe", [*base, "--child-renderer"], PROBE_TIMEOUT_S)
+    renderer_off = None
+    if args.no_render:
+        renderer_off = "--no-render: the fit rows use zero123 tiny (with --dataset) instead of rendering"
 
     header = [_caption(info, device, args), *(f"- {note}" for note in notes)]
     table = run_table(
-        specs, out, header, budget_s=args.budget_s, start=start, renderer_probe=probe,
+        specs, out, header, budget_s=args.budget_s, start=start, renderer_probe=probe, renderer_off=renderer_off,
         refuse_full_size=refuse, env=env, info=info,
     )  # fmt: skip
     header[0] += f"; {time.perf_counter() - start:.0f} s in all"
     text = markdown(table, header)
     (out / "gpu_check.md").write_text(text + "\n")
     print(text, flush=True)
-    return 0 if all(row.error is None and row.skipped is None for row in table) else 1
+    # the probe's row skipped by --no-render is no failure
+    return 0 if all(row.error is None and row.skipped in (None, renderer_off) for row in table) else 1
 
 
 def _caption(info: Mapping[str, Any], device: str, args: argparse.Namespace) -> str:

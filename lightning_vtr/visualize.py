@@ -5,9 +5,6 @@ Grids follow the package's layout (``V[i, j, k]`` centred at ``((i + .5) / R - .
 viewpoints are ``(yaw, pitch)`` in **degrees**, so a voxel picture at a viewpoint shows the object as the
 dataset's image at that viewpoint does. Pictures are ``uint8`` RGB arrays ``(..., H, W, 3)``; the sheet is
 composed with Pillow (no matplotlib state is touched).
-
-One module, past 600 lines, because the grid pictures, the error colouring and the sheets share the grid
-layout, the colours and the renderer they draw with.
 """
 
 from __future__ import annotations

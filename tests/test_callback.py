@@ -24,6 +24,7 @@ from lightning.pytorch.utilities.exceptions import MisconfigurationException
 from PIL import Image
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
+from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.selection import SELECTORS, ErrorGuidedSelector, NatureSelector, RandomSelector
 from lightning_vtr.synthesis.render import RenderSynthesizer
 
@@ -179,6 +180,54 @@ def test_setup_refuses_a_model_without_the_protocol(tiny_dataset, tmp_path):
         )
 
 
+class _PlainAugmentable(L.LightningDataModule):
+    """A user's own augmentable datamodule (not a VTRDataModule) that declares the image size it serves."""
+
+    def __init__(self, inner: VTRDataModule, image_size: int) -> None:
+        super().__init__()
+        self.inner, self.image_size = inner, image_size
+        self.transform = inner.transform
+
+    @property
+    def generated_samples(self):
+        return self.inner.generated_samples
+
+    def setup(self, stage=None):
+        self.inner.setup(stage)
+
+    def train_dataloader(self):
+        return self.inner.train_dataloader()
+
+    def split_records(self, split):
+        return self.inner.split_records(split)
+
+    def record(self, category, object_id):
+        return self.inner.record(category, object_id)
+
+    def eval_item(self, record, view_set="aligned", seed=0):
+        return self.inner.eval_item(record, view_set, seed)
+
+    def object_views(self, record, view_set="aligned", indices=None):
+        return self.inner.object_views(record, view_set, indices)
+
+    def add_samples(self, samples, *, max_total=None):
+        return self.inner.add_samples(samples, max_total=max_total)
+
+
+def test_setup_refuses_a_plain_datamodule_serving_another_image_size(tiny_dataset, tmp_path):
+    # VTRDataModule checks the model itself; a plain datamodule is checked by the callback
+    dm = _PlainAugmentable(make_datamodule(tiny_dataset, tmp_path), image_size=64)
+    callback = make_callback()
+    with pytest.raises(MisconfigurationException) as info:
+        make_trainer(tmp_path, 1, [callback]).fit(TinyUserModel(), datamodule=dm)
+    assert "TinyUserModel.image_size is 32 but _PlainAugmentable.image_size is 64" in str(info.value)
+    assert dm.inner.generated_samples == [] and callback.last_epoch == -2  # refused before any round
+    # the same datamodule serving the model's size trains, and the callback generates
+    dm = _PlainAugmentable(make_datamodule(tiny_dataset, tmp_path / "ok"), image_size=32)
+    make_trainer(tmp_path / "ok", 1, [make_callback()]).fit(TinyUserModel(), datamodule=dm)
+    assert len(dm.generated_samples) == 4
+
+
 class TrainSetSizeProbe(L.Callback):
     """Records the size of the train loader's dataset at the start of every epoch."""
 
@@ -253,8 +302,6 @@ GUIDED = {
     # the callback's default: tempered sampling, 35 % searched, the pool rebuilt at every selection
     "default": lambda: None,
     "relative": lambda: ErrorGuidedSelector(relative=True),
-    # renders every candidate view and queries the model: 8 bins at K = 90 keep it quick
-    "input": lambda: ErrorGuidedSelector(k=90, score="input"),
 }
 
 
@@ -415,11 +462,11 @@ def test_vtr_values_go_through_pl_module_log_and_images_to_the_logger(tiny_datas
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    import lightning_vtr.callback as callback_module
+    import lightning_vtr.augmentation.runner as runner_module
 
     bars = []
-    real_tqdm = callback_module.tqdm
-    monkeypatch.setattr(callback_module, "tqdm", lambda *a, **k: bars.append(k["disable"]) or real_tqdm(*a, **k))
+    real_tqdm = runner_module.tqdm
+    monkeypatch.setattr(runner_module, "tqdm", lambda *a, **k: bars.append(k["disable"]) or real_tqdm(*a, **k))
     dm = make_datamodule(tiny_dataset, tmp_path)
     callback = make_callback(fraction=0.2, progress_bar=True)  # the Trainer's setting wins: no bar
     # a checkpoint monitoring a vtr/* value works only if it reaches trainer.callback_metrics

@@ -15,8 +15,10 @@ from helpers import TinyUserModel, make_callback, make_datamodule, make_trainer
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
 
 import lightning_vtr.augmentation.distributed as distributed_module
+import lightning_vtr.augmentation.runner as runner_module
 import lightning_vtr.callback as callback_module
 from lightning_vtr.augmentation.distributed import all_gather_objects, sharded_map
+from lightning_vtr.augmentation.runner import object_selection
 from lightning_vtr.callback import RECORD_VERSION, _reload_train_dataloader
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.protocol import DEFAULT_THRESHOLD
@@ -45,8 +47,15 @@ def test_setup_names_the_missing_datamodule_member(tiny_dataset, tmp_path):
 def test_the_callback_binarises_at_the_selectors_threshold():
     record = SimpleNamespace(category="chair", object_id="a")
     predicted, target, views = torch.full((4, 4, 4), 0.35), torch.ones(4, 4, 4), torch.zeros(3, 2)
-    at_03 = make_callback(selector=ErrorGuidedSelector(threshold=0.3))._selection(record, 0, views, predicted, target)
-    at_default = make_callback()._selection(record, 0, views, predicted, target)
+    at_03 = object_selection(
+        record,
+        0,
+        views,
+        predicted,
+        target,
+        make_callback(selector=ErrorGuidedSelector(threshold=0.3)).selector.threshold,
+    )
+    at_default = object_selection(record, 0, views, predicted, target, make_callback().selector.threshold)
     assert at_03.error == 0.0  # 0.35 >= 0.3: every voxel right
     assert at_default.error == 1.0  # 0.35 < 0.4: every voxel wrong
     # selectors that do not binarise measure at the package default
@@ -65,7 +74,7 @@ def test_collectives_go_through_the_trainers_strategy():
     trainer = SimpleNamespace(world_size=3, global_rank=1, strategy=Strategy())
     assert all_gather_objects(trainer, "mine") == ["rank 0", "mine", "rank 2"]
     assert calls == [(None, 0), ("mine", 1), (None, 2)]
-    for module in (callback_module, distributed_module):
+    for module in (callback_module, distributed_module, runner_module):
         assert "torch.distributed" not in inspect.getsource(module)
 
 

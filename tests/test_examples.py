@@ -99,3 +99,57 @@ def test_quickstart_trains_with_the_callback_and_tests_every_view_set(tiny_datas
         key = "/".join(part for part in ("test", row["view_set"], row["category"], row["metric"]) if part)
         assert float(row["value"]) == pytest.approx(metrics[key])
     assert any(row["category"] and row["metric"] == "iou@0.3" for row in rows)
+
+
+@pytest.mark.slow
+def test_benchmark_your_method_prints_the_paired_differences_of_report_json(
+    tiny_dataset, tmp_path, monkeypatch, capsys
+):
+    import sys
+
+    from lightning_vtr.experiments.report_tables import paired_differences
+
+    spec = importlib.util.spec_from_file_location("benchmark_your_method", EXAMPLES / "benchmark_your_method.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "benchmark_your_method", module)  # its classes are named by import path
+    spec.loader.exec_module(module)
+    out = tmp_path / "bench"
+    argv = ["--data", str(tiny_dataset), "--out", str(out), "--seeds", "0", "1", "--pretrain-epochs", "1"]
+    argv += ["--finetune-epochs", "1", "--train-batches", "1", "--batch-size", "4", "--map-objects", "1"]
+    argv += ["--fraction", "0.2"]
+    result = module.main(argv)
+    printed = capsys.readouterr().out
+    record = json.loads((out / "report.json").read_text())
+    titles = {name: title for title, name in record["rows"].items()}
+    assert list(record["rows"].values()) == ["none", "random_area", "error_guided", "mine"]
+    assert record["strategies"]["mine"]["selector"] == "benchmark_your_method.ViewsFromBelow"
+    assert record["settings"]["experiment"]["model"] == "benchmark_your_method.TinyVoxelNet"
+    assert record["command"] == "python examples/benchmark_your_method.py " + " ".join(argv)
+
+    # Table 1's rows are the four strategies, with results.csv's spherical mIoU
+    table = [line for line in printed.splitlines() if line.startswith("| ") and "---" not in line]
+    with (out / "results.csv").open() as f:
+        results = list(csv.DictReader(f))
+    for name in ("none", "random_area", "error_guided", "mine"):
+        row = next(line for line in table if line.startswith(f"| {titles[name]} |"))
+        values = [float(r["iou@0.4"]) for r in results if r["run"] == name and r["view_set"] == "spherical"]
+        assert f"{100 * sum(values) / 2:.2f} ±" in row
+    # the differences printed are report.json's (to None-VTR and the reference) and results.csv's (to Random)
+    mine = titles["mine"]
+    payloads = {run: {int(s): v for s, v in seeds.items()} for run, seeds in record["runs"].items()}
+    for other in ("none", "random_area", "error_guided"):
+        line = next(line for line in table if line.startswith(f"| {titles[other]} | ") and "[" in line)
+        cells = [c.strip() for c in line.strip("|").split("|")][1:]
+        for view_set, cell in zip(("aligned", "hemispherical", "spherical"), cells):
+            if other == "random_area":
+                estimate = paired_differences(record["rows"], other, payloads, "iou@0.4", [0, 1])[mine][view_set]
+                mean, low, high = estimate.mean, estimate.low, estimate.high
+            else:
+                stored = record["differences"][other]["iou@0.4"][mine][view_set]
+                mean, low, high = stored["mean"], stored["ci_low"], stored["ci_high"]
+            assert cell.startswith(f"{100 * mean:+.2f} [{100 * low:+.2f}, {100 * high:+.2f}] ")
+            assert result["mine"][titles[other]][view_set].mean == pytest.approx(mean)
+    # one robustness map per strategy
+    assert sorted(record["maps"]) == sorted(titles.values())
+    for summary in record["maps"].values():
+        assert (out / summary["picture"]).is_file() and summary["objects"] == 2  # one object per seed

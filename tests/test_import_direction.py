@@ -1,5 +1,6 @@
 """Imports go one way: the plugin layer never imports the experiments or the command line, ``data`` never imports
-``models``, and only the command line imports the command line.
+``models``, only the command line imports the command line, and no module of the package imports the research
+folder beside it (``research/``).
 
 Every ``import`` and ``from ... import`` of every module is read with :mod:`ast`, at module level and inside
 functions, classes and ``if TYPE_CHECKING:`` blocks alike; relative imports are resolved against the module.
@@ -39,6 +40,11 @@ RULES = (
     *((part, "cli", "the plugin layer must not import the command line") for part in PLUGIN_LAYER),
     ("data", "models", "data must not import models"),
 )
+
+
+#: The research folder beside the package (``research/`` at the repository root): it imports the package, never the
+#: other way round.
+RESEARCH = "research"
 
 
 def module_name(path: Path, root: Path = PACKAGE_DIR) -> str:
@@ -86,6 +92,9 @@ def violations(source: str, module: str, is_package: bool = False) -> list[str]:
         if target == "cli" and importer != "cli" and not reasons:
             reasons = ["only the command line imports the command line"]
         found += [f"{module}:{line} imports {imported}: {why}" for why in reasons]
+    for line, imported in imported_modules(source, module, is_package):
+        if imported.partition(".")[0] == RESEARCH:
+            found.append(f"{module}:{line} imports {imported}: the package must not import the research folder")
     return sorted(set(found))
 
 
@@ -135,6 +144,15 @@ def test_the_plugin_layer_importing_experiments_or_cli_is_reported():
             f"{module}:1 imports lightning_vtr.experiments.training: the plugin layer must not import the experiments"
         ]
         assert violations("from lightning_vtr.cli.predict import run\n", module, is_package=True) != []
+
+
+def test_an_import_of_the_research_folder_is_reported_at_any_depth():
+    source = "def study():\n    from research.scores import MapScore\n    import research\n    return MapScore\n"
+    assert violations(source, "lightning_vtr.selection.scores") == [
+        "lightning_vtr.selection.scores:2 imports research.scores: the package must not import the research folder",
+        "lightning_vtr.selection.scores:3 imports research: the package must not import the research folder",
+    ]
+    assert violations("import researchers\n", "lightning_vtr.selection.scores") == []
 
 
 def test_only_the_cli_imports_the_cli():

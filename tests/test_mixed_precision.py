@@ -105,8 +105,10 @@ def test_bf16_mixed_fit_with_the_callback(tiny_dataset, tmp_path, monkeypatch, m
     for key in ("train/loss", "val/loss"):
         logged = trainer.callback_metrics[key]
         assert logged.dtype == torch.float32 and torch.isfinite(logged), key
-    # selection on float32 probabilities: one call per searched object (not batched), 2 selections
-    assert selector.dtypes == [torch.float32] * (2 * PER_SELECTION)
+    # selection on float32 probabilities: one call per searched object (not batched), 2 selections of
+    # round(search_fraction * 21 training objects) searched objects each (7 at the default 0.35)
+    searched = max(callback.min_objects, round(callback.search_fraction * len(dm.split_records("train"))))
+    assert selector.dtypes == [torch.float32] * (2 * searched)
     # before epoch 0 and after epoch 0 (not after the last): 2 samples each
     samples = dm.generated_samples
     assert [s["epoch"] for s in samples] == [-1] * PER_SELECTION + [0] * PER_SELECTION

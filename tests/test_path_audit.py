@@ -62,7 +62,7 @@ ALLOWED: dict[str, str] = {
     "lightning_vtr.data.folder_test_set:FolderTestSet._scan": "reads; the taxonomy and model folder names are "
     "checked with check_name in the same loop",
     "lightning_vtr.data.pix3d:_record": "reads; check_relative_path checks img, mask and voxel just above",
-    "lightning_vtr.data.shapenet_rendering:ShapeNetRenderingSource._object": "reads; _load_split_file checks "
+    "lightning_vtr.data.shapenet_rendering:ShapeNetRenderingSource._object": "reads; read_split_file checks "
     "the split file's taxonomy and model names",
     "lightning_vtr.data.verify:_check_view_set": "reads; verify_dataset leaves unsafe view-set names out, and "
     "the other name comes from listing the folder itself",

@@ -29,7 +29,14 @@ pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The package's files that are not Python modules and are read at run time (or by type checkers).
-DATA_FILES = ("lightning_vtr/py.typed", "lightning_vtr/experiments/strategies.yaml")
+DATA_FILES = (
+    "lightning_vtr/py.typed",
+    "lightning_vtr/experiments/strategies.yaml",
+    "lightning_vtr/cli/help/fit.txt",
+    "lightning_vtr/cli/help/validate.txt",
+    "lightning_vtr/cli/help/test.txt",
+    "lightning_vtr/cli/help/environment.json",
+)
 
 
 def _run(args: list[str | Path], cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -101,6 +108,10 @@ def test_wheel_and_sdist_carry_the_data_files(dist):
         sdist_names = {name.split("/", 1)[1] for name in sdist.getnames() if "/" in name}
     assert set(DATA_FILES) <= sdist_names
     assert {"README.md", "LICENSE", "examples/quickstart.py", "tests/conftest.py"} <= sdist_names
+    # the research folder beside the package (research/) is in neither
+    assert (ROOT / "research" / "scores.py").is_file()
+    assert [n for n in wheel_names if n.split("/", 1)[0] == "research"] == []
+    assert [n for n in sdist_names if n.split("/", 1)[0] == "research"] == []
     # every module of the working tree is in the wheel, and nothing else of the package
     modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "lightning_vtr").rglob("*.py")}
     assert {n for n in wheel_names if n.startswith("lightning_vtr/") and n.endswith(".py")} == modules

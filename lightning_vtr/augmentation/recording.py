@@ -12,6 +12,7 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 
 from lightning_vtr.augmentation.prediction import predict_probabilities
 from lightning_vtr.augmentation.selection_round import Selection
@@ -25,6 +26,8 @@ __all__ = [
     "RECORDS_DIR",
     "RECORD_VERSION",
     "error_sheets",
+    "log_dir",
+    "log_round",
     "new_views_grid",
     "record_name",
     "selection_record",
@@ -204,3 +207,80 @@ def error_sheets(
         for i, item in enumerate(items)
     ]
     return stack_sheets(sheets)
+
+
+def log_dir(trainer: L.Trainer) -> str:
+    """The running Trainer's own log directory (``trainer.log_dir``; ``default_root_dir`` without a logger).
+
+    A collective under DDP: every process must call it.
+
+    Args:
+        trainer: the running Trainer.
+
+    Returns:
+        The directory, as a string.
+
+    Example::
+
+        write_record(log_dir(trainer), record)
+    """
+    return str(trainer.log_dir or trainer.default_root_dir)
+
+
+def log_round(
+    trainer: L.Trainer,
+    pl_module: L.LightningModule,
+    dm: AugmentableDataModule,
+    record: dict[str, Any],
+    samples: Sequence[GeneratedSample],
+    *,
+    log_images: bool,
+    source_view_set: str,
+    batch_size: int,
+) -> None:
+    """Log a round: its values on every process, and on global rank 0 a summary line, its images and its record.
+
+    ``vtr/samples_generated``, ``vtr/samples_total`` and ``vtr/mean_error`` go through ``pl_module.log`` (every
+    logger gets them and ``ModelCheckpoint`` / ``EarlyStopping`` can monitor them; equal on every process). With
+    ``log_images`` and a logger, :func:`new_views_grid` of the first 8 samples (``vtr/new_views``) and
+    :func:`error_sheets` (``vtr/error_sheets``) are logged; the record is written with :func:`write_record`.
+
+    Args:
+        trainer: the running Trainer; every process calls this.
+        pl_module: the model.
+        dm: the datamodule, the round's samples added.
+        record: the round's :func:`selection_record`.
+        samples: the round's generated samples.
+        log_images: log the image grid and the error sheets.
+        source_view_set: the view set the round predicted from.
+        batch_size: objects per prediction for the error sheets.
+
+    Example::
+
+        log_round(trainer, model, dm, result.record, result.samples, log_images=True, source_view_set="aligned",
+                  batch_size=16)
+    """
+    total = len(dm.generated_samples)
+    metrics = {
+        "vtr/samples_generated": float(len(samples)),
+        "vtr/samples_total": float(total),
+        "vtr/mean_error": record["mean_error"],
+    }
+    # `sync_dist` keeps the equal values and keeps Lightning from warning under DDP
+    for name, value in metrics.items():
+        pl_module.log(name, value, on_step=False, on_epoch=True, sync_dist=True, batch_size=1)
+    directory = log_dir(trainer)  # a collective: every process asks, before the rank-0 branch
+    if not trainer.is_global_zero:
+        return
+    rank_zero_info(
+        f"VTR {'before training' if record['epoch'] < 0 else 'epoch ' + str(record['epoch'])}: "
+        f"{len(samples)} samples generated ({total} in total), "
+        f"mean voxel error of searched objects {record['mean_error']:.4f}"
+    )
+    if log_images and samples and trainer.loggers:
+        from lightning_vtr.utils.image_logging import log_image
+
+        log_image(trainer, "vtr/new_views", new_views_grid(samples[:8]), step=trainer.global_step)
+        sheets = error_sheets(pl_module, dm, record, source_view_set=source_view_set, batch_size=batch_size)
+        log_image(trainer, "vtr/error_sheets", sheets, step=trainer.global_step)
+    write_record(directory, record)

@@ -2,6 +2,21 @@
 
 from __future__ import annotations
 
-from lightning_vtr.cli.dispatch import COMMANDS, build_parser, main
+from typing import TYPE_CHECKING
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+from lightning_vtr.utils.exports import lazy_exports
+
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+    from lightning_vtr.cli.dispatch import COMMANDS, build_parser, main
+
+__all__ = [
+    "COMMANDS",
+    "build_parser",
+    "main",
+]
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "lightning_vtr.cli.dispatch": ["COMMANDS", "build_parser", "main"],
+    },
+)

@@ -9,21 +9,42 @@ to LightningCLI too. Errors a user can fix print one line to stderr naming the t
 what was found, never a traceback: exit status 2 for usage errors (a missing path, ``--shard 3/2``, an output
 folder holding other files, an option argparse rejects), 1 for data errors (a truncated checkpoint, a file that
 is not a picture, a full disk); see :mod:`lightning_vtr.errors` and ``docs/bad_input.md``.
+
+``lightning-vtr fit|validate|test --help`` (exactly those words) prints a help text shipped in
+``lightning_vtr/cli/help/`` instead of importing Lightning to build the parser (seconds): the live parser's text,
+written by ``python -m lightning_vtr.cli.gen_help`` and wrapped at 80 columns. It is printed only when Python and
+the libraries the text depends on have the versions it was written with (:func:`shipped_help`); any other
+command line, such as ``fit --config CONFIG.yaml --help`` or ``fit --model module.Class --help``, gets the live
+parser's help.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shlex
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from lightning_vtr.errors import EXPECTED_ERRORS, UsageError, exit_status, one_line
 from lightning_vtr.utils.memory import retain_freed_memory
 
-__all__ = ["COMMANDS", "LIGHTNING_COMMANDS", "Command", "build_parser", "goes_to_lightning", "main"]
+__all__ = [
+    "COMMANDS",
+    "HELP_DIR",
+    "HELP_DISTRIBUTIONS",
+    "HELP_ENVIRONMENT_FILE",
+    "LIGHTNING_COMMANDS",
+    "Command",
+    "build_parser",
+    "goes_to_lightning",
+    "help_environment",
+    "main",
+    "shipped_help",
+]
 
 #: The ``LightningCLI`` sub-commands (as :data:`lightning_vtr.cli.lightning.LIGHTNING_SUBCOMMANDS`, kept here so
 #: that ``lightning-vtr --help`` imports no Lightning), with their help lines.
@@ -33,6 +54,13 @@ LIGHTNING_COMMANDS: dict[str, str] = {
     "test": "test a model on every view set's test split (LightningCLI: --config, --ckpt_path, ...)",
 }
 LIGHTNING_SUBCOMMANDS = (*LIGHTNING_COMMANDS, "predict")
+#: The folder of the shipped help texts of :data:`LIGHTNING_COMMANDS` (``fit.txt``, ...) and of the environment
+#: they were written in (:data:`HELP_ENVIRONMENT_FILE`); ``python -m lightning_vtr.cli.gen_help`` writes them.
+HELP_DIR = Path(__file__).with_name("help")
+#: The file of :data:`HELP_DIR` holding :func:`help_environment` as it was when the texts were written (JSON).
+HELP_ENVIRONMENT_FILE = "environment.json"
+#: The distributions whose versions the LightningCLI help texts depend on (options, types, docstring parsing).
+HELP_DISTRIBUTIONS = ("lightning", "jsonargparse", "docstring-parser", "typeshed-client")
 
 
 class Command:
@@ -111,6 +139,43 @@ def goes_to_lightning(words: Sequence[str]) -> bool:
     return words[0] not in COMMANDS or any(_LIGHTNING_WORD.match(word) for word in words[1:])
 
 
+def help_environment() -> dict[str, Any]:
+    """What the LightningCLI help texts depend on besides this package's code: the Python version
+    (``"3.11"``, argparse's layout) and the version of each of :data:`HELP_DISTRIBUTIONS` (``None`` when it is
+    not installed), as ``{"python": ..., "distributions": {name: version}}``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str | None:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    return {
+        "python": f"{sys.version_info.major}.{sys.version_info.minor}",
+        "distributions": {name: installed(name) for name in HELP_DISTRIBUTIONS},
+    }
+
+
+def shipped_help(words: Sequence[str]) -> str | None:
+    """The shipped text ``lightning-vtr <words>`` prints, for ``words`` exactly ``[COMMAND, "--help"]`` or
+    ``[COMMAND, "-h"]`` with ``COMMAND`` one of :data:`LIGHTNING_COMMANDS`; ``None`` (the live parser's help)
+    for any other words, when the text is not in :data:`HELP_DIR`, when :func:`help_environment` differs from
+    the one it was written in, or when a ``JSONARGPARSE_*`` variable (which can change the help) is set."""
+    import json
+
+    if len(words) != 2 or words[0] not in LIGHTNING_COMMANDS or words[1] not in ("--help", "-h"):
+        return None
+    if any(name.startswith("JSONARGPARSE_") for name in os.environ):
+        return None
+    try:
+        text = (HELP_DIR / f"{words[0]}.txt").read_text(encoding="utf-8")
+        written_in = json.loads((HELP_DIR / HELP_ENVIRONMENT_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return text if written_in == help_environment() else None
+
+
 class _ParseError(UsageError):
     """An option argparse rejected, with the program (``lightning-vtr COMMAND``) whose parser rejected it."""
 
@@ -164,6 +229,10 @@ def _command_word(words: Sequence[str]) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lightning-vtr`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     words = list(sys.argv[1:] if argv is None else argv)
+    text = shipped_help(words)
+    if text is not None:  # `fit --help`: the live parser's text, without importing Lightning
+        sys.stdout.write(text)
+        raise SystemExit(0)  # as the live parser's --help does
     retain_freed_memory()  # this process trains: freed CPU memory is reused, not faulted in again every step
     if goes_to_lightning(words):
         from lightning_vtr.cli.lightning import run_lightning_cli

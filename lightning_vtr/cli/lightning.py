@@ -38,11 +38,13 @@ from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.models.registry import CLASS_PATH_KEY
 
 __all__ = [
+    "HELP_COLUMNS",
     "HIDDEN_OPTIONS",
     "LIGHTNING_SUBCOMMANDS",
     "TRAINER_DEFAULTS",
     "RecordModelClass",
     "VTRLightningCLI",
+    "lightning_help",
     "run_lightning_cli",
 ]
 
@@ -53,6 +55,9 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 TRAINER_DEFAULTS: dict[str, Any] = {"reload_dataloaders_every_n_epochs": 1}
 #: Options of the classes' signatures that ``--help`` does not show: removed arguments still accepted as ``None``.
 HIDDEN_OPTIONS = ("data.max_generated", "data.init_args.max_generated")
+#: The terminal width (``COLUMNS``) :func:`lightning_help` wraps the help at: the width of a stdout that is not a
+#: terminal, so the shipped texts equal what ``lightning-vtr fit --help > file`` writes.
+HELP_COLUMNS = 80
 
 
 class RecordModelClass(L.Callback):
@@ -238,6 +243,43 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
             raise DataError(_weights_mismatch(str(err), checkpoints[-1])) from None
         raise
     return 0
+
+
+def lightning_help(command: str) -> str:
+    """The text ``lightning-vtr COMMAND --help`` prints from the live ``LightningCLI`` parser (the path
+    :func:`run_lightning_cli` takes), wrapped at :data:`HELP_COLUMNS` columns, with the program named
+    ``lightning-vtr``.
+
+    The ``known subclasses`` it lists are those of the modules imported so far, so the texts shipped in
+    ``lightning_vtr/cli/help/`` are made in a fresh process (``python -m lightning_vtr.cli.gen_help``).
+
+    Args:
+        command: ``"fit"``, ``"validate"``, ``"test"`` or ``"predict"``.
+
+    Raises:
+        ValueError: ``command`` is not a LightningCLI sub-command.
+    """
+    import contextlib
+    import io
+    import os
+    import sys
+
+    if command not in LIGHTNING_SUBCOMMANDS:
+        raise ValueError(f"`command` must be one of {', '.join(LIGHTNING_SUBCOMMANDS)}, got {command!r}")
+    saved_columns, saved_argv = os.environ.get("COLUMNS"), sys.argv
+    os.environ["COLUMNS"] = str(HELP_COLUMNS)
+    sys.argv = ["lightning-vtr", command, "--help"]  # argparse names the program after sys.argv[0]
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed), contextlib.suppress(SystemExit):
+            run_lightning_cli(None)  # the words of sys.argv, as from the entry point
+    finally:
+        sys.argv = saved_argv
+        if saved_columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = saved_columns
+    return printed.getvalue()
 
 
 def _config_section(path: str, section: str) -> Any:

@@ -57,8 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Per seed, pretrain a model on Aligned, fine-tune it with each view strategy under one budget, test on "
         "Aligned / Hemispherical / Spherical and write report.md (Table 1 with 95 % confidence intervals, paired "
-        "differences to None-VTR and Random, the training views' distribution, the time split), results.csv, "
-        "differences.csv, report.png and timing.json into --out. A killed report re-run skips every finished run."
+        "differences to None-VTR, Random and --reference, the training views' distribution, the time split), "
+        "table1.md/.csv/.tex, differences.md/.tex/.csv, categories.csv/.md, results.csv, report.png, timing.json, "
+        "with --maps each strategy's robustness map (maps/), and last report.json (every number, the command, the "
+        "version and the settings) into --out. A killed report re-run skips every finished run."
     )
     add_config_arguments(parser, _unchecked_defaults().experiment, exclude=_EXPERIMENT_EXCLUDED)
     ablations = parser.add_mutually_exclusive_group()

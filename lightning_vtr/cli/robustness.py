@@ -5,7 +5,7 @@ Every checkpoint is measured with :func:`~lightning_vtr.evaluation.robustness.ro
 so the same view sets (views per set: the first checkpoint's ``num_views``, for all of them)::
 
     lightning-vtr robustness --ckpt "None-VTR=runs/none/last.ckpt" --ckpt "VTR=runs/vtr/last.ckpt" \\
-        --data ~/.cache/lightning_vtr/embedded --split test --out robustness --k 30 --objects 64 --scores
+        --data ~/.cache/lightning_vtr/embedded --split test --out robustness --k 30 --objects 64
 
 It writes into ``OUT``:
 
@@ -18,10 +18,8 @@ It writes into ``OUT``:
   ``difference`` = first - second;
 * ``<NAME>.png``: the equal-area pictures, one colour scale for all; ``<FIRST>_minus_<SECOND>.png``: the
   difference map (blue where the first is better), and every further checkpoint minus the second;
-* ``score_validity.md`` (``--scores``): per checkpoint, how well each selection score points at the bins where
-  the model fails (:func:`~lightning_vtr.evaluation.robustness_scores.validity_table`);
-* ``index.html``, written last: the pictures, a table of the maps and the score validity. A folder without it is
-  not a complete output.
+* ``index.html``, written last: the pictures and a table of the maps. A folder without it is not a complete
+  output.
 
 A checkpoint is ``[NAME=]PATH`` (default NAME: the file's stem); names must differ. Every input is checked before a
 model loads or anything is written.
@@ -69,7 +67,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--seed", type=int, default=0, help="seed of the view sets (default 0)")
     add("--sets-per-bin", type=positive_int, default=1, help="view sets per bin and object (default 1)")
     add("--objects", type=positive_int, default=None, help="at most N objects, round-robin over categories")
-    add("--scores", action="store_true", help="also write the score-validity table of every checkpoint")
     add(
         "--model",
         default=None,
@@ -84,11 +81,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check_names(checkpoints: list[tuple[str, Path]]) -> None:
     """Names that differ, also as file names (``<NAME>.png``)."""
-    from lightning_vtr.evaluation.robustness_plot import _file_stem
+    from lightning_vtr.evaluation.robustness_plot import map_file_stem
 
     seen: dict[str, str] = {}
     for name, _ in checkpoints:
-        stem = _file_stem(name)
+        stem = map_file_stem(name)
         if stem in seen:
             same = "is repeated" if seen[stem] == name else f"names the same files as {seen[stem]!r}"
             raise UsageError(
@@ -163,8 +160,7 @@ def run(args: argparse.Namespace) -> int:
     from lightning_vtr.evaluation.predict import make_datamodule, resolve_device
     from lightning_vtr.evaluation.robustness import robustness_map
     from lightning_vtr.evaluation.robustness_callback import ObjectSubset, spread_over_categories
-    from lightning_vtr.evaluation.robustness_plot import _file_stem, write_index_html
-    from lightning_vtr.evaluation.robustness_scores import selection_scores, validity_table
+    from lightning_vtr.evaluation.robustness_plot import map_file_stem, write_index_html
     from lightning_vtr.models.registry import load_model
     from lightning_vtr.utils.io import atomic_write
     from lightning_vtr.utils.paths import join_under
@@ -174,7 +170,6 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     # 2. measure each checkpoint on the first one's objects, with the first one's number of views
     maps: dict[str, Any] = {}
-    tables: dict[str, str] = {}
     records: list[Any] | None = None
     views_per_set: int | None = None
     for name, path in args.ckpt:
@@ -200,31 +195,22 @@ def run(args: argparse.Namespace) -> int:
         rmap.extra.update(checkpoint=str(path), name=name)
         maps[name] = rmap
         print(f"{name}: IoU over the sphere {rmap.overall():.4f} ({rmap.num_objects} objects, {rmap.num_bins} bins)")
-        if args.scores:
-            scores = selection_scores(model, objects, k=k, seed=args.seed, split=args.split)
-            tables[name] = validity_table(rmap, scores, object_ids=[r.object_id for r in records])
         del model
     # 3. write: bins.csv first (it marks the folder as this command's), index.html last
     out = Path(args.out).expanduser()
     header = ["checkpoint", *next(iter(maps.values())).bin_rows(None)[0]]
     atomic_write(out / MARKER, _csv_text(header, _bins_rows(maps)))
     for name, rmap in maps.items():
-        rmap.to_csv(join_under(out, "maps", _file_stem(name)), per_category=True)
+        rmap.to_csv(join_under(out, "maps", map_file_stem(name)), per_category=True)
     names = list(maps)
     if len(names) >= 2:
         rows = _difference_rows(maps[names[0]], maps[names[1]])
         atomic_write(out / "difference.csv", _csv_text(list(rows[0]), rows))
-    sections = {}
-    if args.scores:
-        text = "".join(f"## {name}\n\n{table.rstrip()}\n\n" for name, table in tables.items())
-        atomic_write(out / "score_validity.md", f"# Score validity\n\n{text}")
-        sections = {f"Score validity: {name}": table for name, table in tables.items()}
     index = write_index_html(
         out,
         maps,
         reference=names[1] if len(names) >= 2 else None,
         title=f"lightning-vtr robustness: {args.split} split, K = {k}",
-        sections=sections,
     )
     overall = np.array([m.overall() for m in maps.values()])
     if len(names) >= 2:

@@ -36,9 +36,6 @@ written by whichever pass finds every object finished (built or failed): the las
 plain re-run, or :func:`finalize_dataset` (``lightning-vtr build-dataset ROOT --finalize``).
 ``build_config.json`` records the options that shape the content; a re-run or another shard with
 different ones is refused, so one dataset never mixes image sizes or view sets.
-
-One module, past 600 lines, because planning, the worker processes, resuming and finalizing a build share
-its task and manifest types.
 """
 
 from __future__ import annotations
@@ -108,8 +105,8 @@ PIX3D_VIEW_SET = "pix3d"
 PIX3D_VIEWS_PER_OBJECT = 60
 #: The pitch range (degrees) of a ``protocol="pix3d"`` build by default: seat height to a moderate look down.
 PIX3D_PITCH_RANGE: tuple[float, float] = (0.0, 40.0)
-# Level 1 of zlib: PNGs of flat-shaded renders shrink ~10 % less than at the default 6 but encode
-# several times faster, and encoding is a large share of the build time at 128 px.
+# Level 1 of zlib: PNGs of flat-shaded renders come out a little larger than at the default 6 but encode
+# several times faster, and encoding is a large share of the build time.
 _PNG_COMPRESS_LEVEL = 1
 
 #: The embedded dataset's build options: 10 categories x 24 objects (17 / 2 / 5 per split) at 96 px, sized so

@@ -606,9 +606,11 @@ class VTRDataModule(L.LightningDataModule):
             str(Path(e["root"]) / e["dir"]) for e in self._generated if not (Path(e["root"]) / e["dir"]).is_dir()
         ]
         if missing:
+            more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
             raise FileNotFoundError(
-                f"The checkpoint lists {len(missing)} generated samples that are missing (first: {missing[0]}). Pass "
-                "`generated_dir` pointing at the folder that holds the checkpointed run's generated samples."
+                f"The checkpoint lists {len(missing)} generated samples whose folders are missing: "
+                f"{', '.join(missing[:5])}{more}. Pass `generated_dir` pointing at the folder that now holds the "
+                "checkpointed run's generated samples."
             )
 
 

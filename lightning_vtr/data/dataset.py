@@ -32,6 +32,7 @@ __all__ = [
     "GeneratedSample",
     "ImageTransform",
     "VTRDataset",
+    "apply_image_transform",
     "load_rgba",
     "load_voxels",
     "write_generated_sample",
@@ -41,8 +42,12 @@ __all__ = [
 _GENERATED_STREAM = 1
 
 
-def _transform(transform: Callable[..., Tensor], images: np.ndarray, key: tuple[int, ...]) -> Tensor:
-    # A key only for the package's own transform: a user's callable keeps its one-argument form.
+def apply_image_transform(transform: Callable[..., Tensor], images: np.ndarray, key: tuple[int, ...]) -> Tensor:
+    """``transform(images, key=key)`` for an :class:`ImageTransform`, ``transform(images)`` for any other callable.
+
+    The datasets call every transform through this, so a user's one-argument callable keeps working while the
+    package's transform draws its random parameters from ``key`` (``(seed, epoch, index)``).
+    """
     return transform(images, key=key) if isinstance(transform, ImageTransform) else transform(images)
 
 
@@ -164,7 +169,7 @@ class VTRDataset(Dataset):
         chosen = self.view_indices(index)
         images = np.stack([load_rgba(paths[i]) for i in chosen])
         return {
-            "images": _transform(self.transform, images, (self.seed, self.epoch, index)),
+            "images": apply_image_transform(self.transform, images, (self.seed, self.epoch, index)),
             "voxels": load_voxels(rec),
             "viewpoints": torch.as_tensor(np.asarray(viewpoints)[chosen], dtype=torch.float32),
             "category": rec.category,
@@ -278,7 +283,7 @@ class GeneratedDataset(Dataset):
         images = np.stack([load_rgba(sample_dir / name) for name in entry["images"]])
         key = (self.seed, self.epoch, int(entry.get("id", index)), _GENERATED_STREAM)
         return {
-            "images": _transform(self.transform, images, key),
+            "images": apply_image_transform(self.transform, images, key),
             "voxels": load_voxels(self.records[(entry["category"], entry["object_id"])]),
             "viewpoints": torch.as_tensor(entry["viewpoints"], dtype=torch.float32),
             "category": entry["category"],

@@ -42,9 +42,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from lightning_vtr.data.dataset import _transform, load_rgba, load_voxels
+from lightning_vtr.data.dataset import apply_image_transform, load_rgba, load_voxels
 from lightning_vtr.data.format import IMAGE_SUFFIXES, SHAPENET_SYNSETS, SPLITS, ObjectRecord
-from lightning_vtr.data.shapenet_rendering import _load_split_file
+from lightning_vtr.data.shapenet_rendering import read_split_file
 from lightning_vtr.data.transforms import ImageTransform
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.paths import check_name, check_no_case_collisions
@@ -166,7 +166,7 @@ class FolderTestSet(Dataset):
     def _listed(split_file: Path, split: str) -> set[tuple[str, str]]:
         if not split_file.is_file():
             raise FileNotFoundError(f"`split_file` {str(split_file)!r} does not exist")
-        return {(str(e["taxonomy_id"]), str(m)) for e in _load_split_file(split_file) for m in e.get(split, [])}
+        return {(str(e["taxonomy_id"]), str(m)) for e in read_split_file(split_file) for m in e.get(split, [])}
 
     def _scan(
         self,
@@ -257,7 +257,7 @@ class FolderTestSet(Dataset):
         record = self.records[index]
         images = np.stack([load_rgba(p) for p in self.view_paths(index)])
         return {
-            "images": _transform(self.transform, images, (self.seed, 0, index)),
+            "images": apply_image_transform(self.transform, images, (self.seed, 0, index)),
             "voxels": load_voxels(record),
             "viewpoints": torch.full((self.num_views, 2), float("nan")),
             "category": record.category,

@@ -61,9 +61,6 @@ legs a few 128^3 voxels thick survive), ``"mean"`` when at least half of them ar
 :func:`lightning_vtr.evaluation.pix3d.evaluate_pix3d` is the loop, ``lightning-vtr pix3d`` the command (Table 5
 layout). By default the
 photographs Pix3D's own evaluation list keeps are used: not truncated, not occluded, not slightly occluded.
-
-One module, past 600 lines, because the reader, the frame conversions and the cropping share Pix3D's
-record layout and its three frames, stated once above.
 """
 
 from __future__ import annotations
@@ -81,9 +78,9 @@ import torch
 from PIL import Image
 from torch.utils.data import Dataset
 
-from lightning_vtr.data.dataset import _transform
+from lightning_vtr.data.dataset import apply_image_transform
 from lightning_vtr.data.format import DatasetFormatError
-from lightning_vtr.data.shapenet_rendering import _load_split_file
+from lightning_vtr.data.shapenet_rendering import read_split_file
 from lightning_vtr.data.transforms import ImageTransform
 from lightning_vtr.utils.paths import check_name, check_no_case_collisions, check_relative_path
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
@@ -102,6 +99,8 @@ __all__ = [
     "load_voxel_mat",
     "pix3d_viewpoint",
     "read_pix3d",
+    "read_pix3d_image",
+    "read_pix3d_mask",
     "rotate_grid",
     "yaw_rotation",
 ]
@@ -372,7 +371,7 @@ def read_pix3d(
             raise FileNotFoundError(f"`split_file` {str(split_path)!r} does not exist")
         listed = {
             f"{e.get('taxonomy_name') or e['taxonomy_id']}/{s}"
-            for e in _load_split_file(split_path)
+            for e in read_split_file(split_path)
             for s in e.get(split, [])
         }
         records = [r for r in records if r.key in listed]
@@ -559,7 +558,12 @@ def crop_to_bbox(
     return out
 
 
-def _read_image(path: Path) -> np.ndarray:
+def read_pix3d_image(path: Path) -> np.ndarray:
+    """A Pix3D photograph as ``(H, W, 3)`` uint8 RGB.
+
+    Raises:
+        OSError: naming ``path``, when it cannot be read as an image.
+    """
     try:
         with Image.open(path) as img:
             return np.asarray(img.convert("RGB"))
@@ -567,7 +571,13 @@ def _read_image(path: Path) -> np.ndarray:
         raise OSError(f"Cannot read image {path}: {err}") from err
 
 
-def _read_mask(path: Path, shape: tuple[int, int], image_path: Path) -> np.ndarray:
+def read_pix3d_mask(path: Path, shape: tuple[int, int], image_path: Path) -> np.ndarray:
+    """A Pix3D mask as ``(H, W)`` uint8 (0 background), of the size ``shape`` of its photograph ``image_path``.
+
+    Raises:
+        OSError: naming ``path``, when it cannot be read as an image.
+        DatasetFormatError: naming both files, when the mask's size is not ``shape``.
+    """
     try:
         with Image.open(path) as img:
             mask = np.asarray(img.convert("L"))
@@ -663,15 +673,15 @@ class Pix3DDataset(Dataset):
 
     def crop(self, record: Pix3DRecord) -> np.ndarray:
         """The record's square RGBA crop, before the transform."""
-        image = _read_image(record.image_path)
-        mask = _read_mask(record.mask_path, image.shape[:2], record.image_path) if self.use_mask else None
+        image = read_pix3d_image(record.image_path)
+        mask = read_pix3d_mask(record.mask_path, image.shape[:2], record.image_path) if self.use_mask else None
         return crop_to_bbox(image, mask, record.bbox, margin=self.margin, background=self.background)
 
     def __getitem__(self, index: int) -> dict:
         record = self.records[index]
         crop = self.crop(record)[None]
         return {
-            "images": _transform(self.transform, crop, (0, 0, index)),
+            "images": apply_image_transform(self.transform, crop, (0, 0, index)),
             "voxels": torch.from_numpy(self.voxels(record).astype(np.float32)),
             "viewpoints": torch.as_tensor(pix3d_viewpoint(record, self.yaw_offset)[None], dtype=torch.float32),
             "category": record.category,

@@ -50,6 +50,7 @@ __all__ = [
     "ShapeNetRenderingSource",
     "r2n2_to_viewpoints",
     "read_rendering_metadata",
+    "read_split_file",
 ]
 
 #: 3D-R2N2's ``cfg.RENDERING.MAX_CAMERA_DIST``: the camera distance is ``distance_ratio`` times this.
@@ -105,7 +106,19 @@ def read_rendering_metadata(path: str | Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
-def _load_split_file(path: Path) -> list[dict]:
+def read_split_file(path: Path) -> list[dict]:
+    """The entries of a ShapeNet split file (3D-R2N2's JSON layout), checked.
+
+    Args:
+        path: a JSON list of ``{"taxonomy_id", "taxonomy_name"?, "train"?, "val"?, "test"?}`` entries.
+
+    Returns:
+        The entries as read; every taxonomy id and name and every model id is a safe file name.
+
+    Raises:
+        DatasetFormatError: naming the file, when it cannot be read, is not JSON, is not a list, or an entry
+            lacks ``taxonomy_id`` or holds a name that is not a safe path component.
+    """
     try:
         entries = json.loads(path.read_text())
     except OSError as err:
@@ -219,7 +232,7 @@ class ShapeNetRenderingSource:
         """
         if self._records is not None:
             return self._records
-        entries = _load_split_file(self.split_file)
+        entries = read_split_file(self.split_file)
         if self.categories is not None:
             known = {self._category(e) for e in entries} | {str(e["taxonomy_id"]) for e in entries}
             unknown = sorted(set(self.categories) - known)

@@ -6,9 +6,6 @@ key such as ``(seed, epoch, index)``, so a sample's augmentation never depends o
 or a global random state. Training views can also be composited over random crops of the images of a folder
 (:class:`BackgroundFolder`, ``ImageRecipe(background_folder=...)``). :class:`ImageRecipe` holds the settings of
 one recipe; :data:`IMAGE_RECIPES` names the reference ones.
-
-One module, past 600 lines, because the ops, the recipe and the transform share the parameter names and the
-keyed random draws that make samples reproducible.
 """
 
 from __future__ import annotations

@@ -27,10 +27,10 @@ from lightning_vtr.data.pix3d import (
     VOXEL_TO_MODEL,
     Pix3DDataset,
     Pix3DRecord,
-    _read_image,
-    _read_mask,
     downsample_voxels,
     load_voxel_mat,
+    read_pix3d_image,
+    read_pix3d_mask,
 )
 from lightning_vtr.evaluation.dataset import evaluate_dataset
 from lightning_vtr.utils.io import atomic_write
@@ -210,8 +210,8 @@ def frame_check(
     if voxel_to_model.shape != (3, 3):
         raise ValueError(f"`voxel_to_model` must be 3x3, got shape {voxel_to_model.shape}")
     raw = load_voxel_mat(record.voxel_path)
-    image = _read_image(record.image_path)
-    mask = _read_mask(record.mask_path, image.shape[:2], record.image_path)
+    image = read_pix3d_image(record.image_path)
+    mask = read_pix3d_mask(record.mask_path, image.shape[:2], record.image_path)
     silhouette = _mask_silhouette(mask, size)
     small = downsample_voxels(raw, min(grid, raw.shape[0]), fit=False, pooling="max")
     padded = np.pad(small, 1)

@@ -55,8 +55,7 @@ def spread_over_categories(records: Sequence[Any], count: int | None) -> list[An
 class ObjectSubset:
     """Some of a datamodule's objects, served as the datamodule serves them.
 
-    :func:`~lightning_vtr.evaluation.robustness.robustness_map` and
-    :func:`~lightning_vtr.evaluation.robustness_scores.selection_scores` take it in place of the datamodule:
+    :func:`~lightning_vtr.evaluation.robustness.robustness_map` takes it in place of the datamodule:
     ``split_records`` gives the chosen records (whatever split is asked), ``transform``, ``object_voxels`` and
     ``eval_item`` are the datamodule's.
 

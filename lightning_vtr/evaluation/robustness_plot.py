@@ -21,7 +21,7 @@ from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_int
 
-__all__ = ["plot_difference", "plot_map", "write_index_html"]
+__all__ = ["map_file_stem", "plot_difference", "plot_map", "write_index_html"]
 
 _DPI = 100
 
@@ -190,7 +190,22 @@ def plot_difference(
     return _save(fig, path)
 
 
-def _file_stem(name: str) -> str:
+def map_file_stem(name: str) -> str:
+    """The file name stem :func:`write_index_html` gives the pictures of the map called ``name``.
+
+    Every character but letters, digits, ``-``, ``_`` and ``.`` becomes ``_``; leading and trailing dots and
+    underscores are dropped; an empty result is ``"map"``. Two names with one stem would write the same files.
+
+    Args:
+        name: the map's name (a checkpoint's label, say).
+
+    Returns:
+        A stem safe as a file name on every platform.
+
+    Example:
+        >>> map_file_stem("VTR (default rule)"), map_file_stem("a/b"), map_file_stem("..")
+        ('VTR__default_rule', 'a_b', 'map')
+    """
     stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in name).strip("._")
     return stem or "map"
 
@@ -272,7 +287,7 @@ def write_index_html(
     vmin, vmax = shared_limits(maps)
     rows, figures = [], []
     for name, rmap in maps.items():
-        png = plot_map(rmap, join_under(directory, f"{_file_stem(name)}.png"), title=name, vmin=vmin, vmax=vmax)
+        png = plot_map(rmap, join_under(directory, f"{map_file_stem(name)}.png"), title=name, vmin=vmin, vmax=vmax)
         means = rmap.mean()
         worst, best = int(np.nanargmin(means)), int(np.nanargmax(means))
         rows.append(
@@ -287,7 +302,7 @@ def write_index_html(
             diff = plot_difference(
                 rmap,
                 maps[reference],
-                join_under(directory, f"{_file_stem(name)}_minus_{_file_stem(reference)}.png"),
+                join_under(directory, f"{map_file_stem(name)}_minus_{map_file_stem(reference)}.png"),
                 title=f"{name} - {reference}",
             )
             figures.append(f'<figure><img src="{html.escape(diff.name)}" alt="{html.escape(diff.stem)}"></figure>')

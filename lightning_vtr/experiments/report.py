@@ -9,11 +9,11 @@ the same test items (a paired difference, :mod:`~lightning_vtr.experiments.stati
 
 The rows are names of :data:`~lightning_vtr.experiments.strategies.VARIANTS` (the rows of
 ``strategies.yaml``; ``lightning-vtr report --list-strategies`` prints them). By default
-:data:`MAIN_STRATEGIES`: ``none`` (no augmentation), ``random`` (angle-uniform views), ``error_guided`` (the
-callback's default, whatever it is) and ``paper`` (the paper's exact rule). The ablations of the error-guided
-method (:data:`ABLATIONS`) are opt-in:
+:data:`MAIN_STRATEGIES`: ``none`` (no augmentation), ``random`` (Random as the paper draws it, angle-uniform),
+``random_area`` (area-uniform Random), ``paper`` (the paper's rule) and ``error_guided`` (the package's default
+rule, ``ErrorGuidedViewAugmentation()``). The ablations of the default rule (:data:`ABLATIONS`) are opt-in:
 
-* ``k``: bin interval :math:`K \in \{15, 30, 60, 90\}` degrees (the K = 30 run is the main "Ours" run);
+* ``k``: bin interval :math:`K \in \{15, 30, 60, 90\}` degrees (the K = 30 run is the ``error_guided`` row);
 * ``pool``: with vs without the per-category viewpoint pool (``use_pool=False``);
 * ``single_view``: the "none" and "error_guided" fine-tuned models tested with 1 input view.
 
@@ -41,6 +41,18 @@ The work is split in steps, each a module: :mod:`~lightning_vtr.experiments.repo
   metric, mean, ci_low, ci_high, seeds, agree``), fractions;
 * ``report.png``: mIoU per view set and strategy as grouped bars (error bars: 95 % CI over seeds) and the
   pitch histogram of each strategy's generated views;
+* ``table1.md``, ``table1.csv``, ``table1.tex``: Table 1 alone, as Markdown, as one row per strategy x view set x
+  metric (``method, run, view_set, metric, mean, half_width, ci_low, ci_high, seeds``, fractions) and as a
+  booktabs LaTeX ``tabular`` (mIoU and F-score per view set, ``mean $\pm$ half-width`` in %, best in bold);
+* ``differences.md``, ``differences.tex``: the paired-difference tables (to None-VTR, Random and
+  :attr:`ReportConfig.reference`);
+* ``categories.csv`` (one row per strategy x seed x view set x category, the metrics as fractions) and
+  ``categories.md`` (per view set, mean IoU per category and strategy);
+* ``maps/`` (:attr:`ReportConfig.maps`): each strategy's viewpoint robustness map, pooled over seeds
+  (:mod:`~lightning_vtr.experiments.report_maps`);
+* ``report.json``, written last: every number above, every run's results, the command, ``sys.argv``, the package
+  version, the resolved :class:`ReportConfig` and each strategy's resolved selector and callback
+  (:func:`~lightning_vtr.experiments.report_paper.report_record`);
 * ``timing.json``: the wall time of every invocation and the time split (seconds per stage);
 * ``seed_<s>/<run>/results.json`` (metrics and stage timings), the ``vtr_selection`` records and
   checkpoints of every run, ``seed_<s>/pretrain/timing.json``.
@@ -67,6 +79,7 @@ from lightning_vtr.experiments.report_config import (
     default_experiment,
 )
 from lightning_vtr.experiments.report_files import write_chart, write_differences_csv, write_results_csv
+from lightning_vtr.experiments.report_paper import write_paper_files
 from lightning_vtr.experiments.report_plan import plan_runs
 from lightning_vtr.experiments.report_render import render_markdown, summarize
 from lightning_vtr.experiments.report_run import execute_runs
@@ -130,8 +143,16 @@ def run_report(config: ReportConfig) -> dict:
     markdown = render_markdown(config, runs, results, summary, split, timing)
     atomic_write(paths["markdown"], markdown)
     write_results_csv(paths["csv"], runs, results.payloads, seeds)
-    write_differences_csv(paths["differences"], summary.rows, results.payloads, seeds)
+    write_differences_csv(paths["differences"], summary.rows, results.payloads, seeds, list(summary.differences))
     write_chart(paths["chart"], summary.rows, results.payloads, seeds, summary.views)
+    maps: dict = {}
+    if config.maps:
+        from lightning_vtr.experiments.report_maps import strategy_maps, write_maps
+
+        reference = next((title for title, run in summary.rows.items() if run == "none"), None)
+        maps = write_maps(out, strategy_maps(config, summary.rows, runs), reference)
+        paths["maps"] = out / "maps" / "index.html"
+    paths.update(write_paper_files(config, runs, results, summary, maps, dict(paths)))
     return {
         "runs": results.payloads,
         "markdown": markdown,
@@ -143,4 +164,5 @@ def run_report(config: ReportConfig) -> dict:
         "validation_differences": summary.validation_differences,
         "views": summary.views,
         "time_split": split,
+        "maps": maps,
     }

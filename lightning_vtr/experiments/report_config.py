@@ -33,9 +33,11 @@ __all__ = [
     "default_experiment",
 ]
 
-MAIN_STRATEGIES: tuple[str, ...] = ("none", "random", "error_guided", "paper")
-"""The report's default rows: no augmentation, angle-uniform random views, the callback's default and the
-paper's exact rule. Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is opt-in."""
+MAIN_STRATEGIES: tuple[str, ...] = ("none", "random", "random_area", "paper", "error_guided")
+"""The report's default rows, what a user chooses between: no augmentation, Random as the paper draws it
+(angle-uniform), area-uniform Random, the paper's rule and the package's default rule
+(``ErrorGuidedViewAugmentation()``). Any other name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` is
+opt-in."""
 BASELINES: tuple[str, ...] = ("none", "random")
 """The strategies every other one is compared with, seed by seed (when the report runs them)."""
 ABLATIONS: tuple[str, ...] = ("k", "pool", "single_view")
@@ -140,6 +142,14 @@ class ReportConfig:
             fixed view sets (:func:`~lightning_vtr.experiments.training.validate_run`), and add the paired
             differences there to ``report.md``: the place to choose among strategies, so the test split only
             confirms. ``None`` (the default): off.
+        reference: a name in ``strategies`` every other row is also compared with, seed by seed, beside
+            :data:`BASELINES` (e.g. the callback's default, to compare a method of your own with it); ``None``: the
+            baselines only.
+        maps: also measure each row's viewpoint robustness map (:mod:`~lightning_vtr.experiments.report_maps`):
+            every seed's final model of the row on ``map_objects`` test objects, view sets around every bin of
+            the ``map_k``-degree grid; written to ``out/maps/``.
+        map_k: the maps' bin interval in degrees (divides 180; 30 gives 72 bins, 90 gives 8).
+        map_objects: test objects per seed the maps measure, spread over the categories.
         jobs: fits run at once, each in its own (spawned) process with ``torch.get_num_threads() // jobs``
             torch threads (at least 1): every seed's pretraining first, then its runs as soon as it is done.
             Their output goes to ``seed_<s>/logs/<run>.log``; the report prints a line per finished fit, then
@@ -155,7 +165,7 @@ class ReportConfig:
 
     Example::
 
-        ReportConfig(default_experiment(out="runs/r"), seeds=[0, 1], strategies=["none", "random", "visible_nms"])
+        ReportConfig(default_experiment(out="runs/r"), seeds=[0, 1], strategies=["none", "random_area", "error_guided"])
     """
 
     experiment: ExperimentConfig = field(default_factory=default_experiment)
@@ -209,6 +219,22 @@ class ReportConfig:
         ),
     )
 
+    reference: str | None = field(
+        default=None,
+        metadata=flag(
+            "also compare every row with this one, seed by seed (a name in --strategies), as with None-VTR and Random",
+            default_text="None-VTR and Random only",
+        ),
+    )
+    maps: bool = field(
+        default=False,
+        metadata=flag("also measure the viewpoint robustness map of each strategy's final model (OUT/maps/)"),
+    )
+    map_k: int = field(default=30, metadata=flag("bin interval of --maps, in degrees, dividing 180", minimum=1))
+    map_objects: int = field(
+        default=8, metadata=flag("test objects per seed of --maps, spread over the categories", minimum=1)
+    )
+
     def __post_init__(self) -> None:
         from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
@@ -237,6 +263,11 @@ class ReportConfig:
             check_choice("selector_kwargs", strategy, variants)
         if self.validation_repeats is not None:
             check_int("validation_repeats", self.validation_repeats, minimum=1)
+        if self.reference is not None:
+            check_choice("reference", self.reference, self.strategies)
+        check_int("map_objects", self.map_objects, minimum=1)
+        if 180 % check_int("map_k", self.map_k, minimum=1):
+            raise ValueError(f"`map_k` must divide 180 (degrees), got {self.map_k}")
         if check_int("jobs", self.jobs, minimum=1) > 1:
             if self.experiment.devices != 1:
                 raise ValueError(

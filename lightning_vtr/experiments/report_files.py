@@ -44,13 +44,20 @@ def _nan_if_none(value: float | None) -> float:
 
 
 def write_differences_csv(
-    path: Path, rows: dict[str, str], payloads: dict[str, dict[int, dict]], seeds: list[int]
+    path: Path,
+    rows: dict[str, str],
+    payloads: dict[str, dict[int, dict]],
+    seeds: list[int],
+    baselines: list[str] | None = None,
 ) -> None:
-    """One row per baseline x run x view set x metric: the paired difference as a fraction, its 95 % CI."""
+    """One row per baseline x run x view set x metric: the paired difference as a fraction, its 95 % CI.
+    ``baselines``: the runs compared with (default: those of :data:`BASELINES` among ``rows``)."""
+    if baselines is None:
+        baselines = [b for b in BASELINES if b in rows.values()]
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["baseline", "run", "view_set", "metric", "mean", "ci_low", "ci_high", "seeds", "agree"])
-        for baseline in (b for b in BASELINES if b in rows.values()):
+        for baseline in baselines:
             for metric in METRICS:
                 by_title = paired_differences(rows, baseline, payloads, metric, seeds)
                 for title, per_set in by_title.items():

@@ -1,7 +1,7 @@
 """The runs of one seed of ``lightning-vtr report``: the strategies' fine-tunings, then the ablations' runs.
 
-Runs whose selector and callback resolve to the same arguments (the callback's default and ``"paper"`` while the
-default is the paper's rule) are fitted once: the later one is marked :attr:`ReportRun.same_as` the earlier.
+Runs whose selector and callback resolve to the same arguments (e.g. a row of a strategies file that repeats a
+shipped rule) are fitted once: the later one is marked :attr:`ReportRun.same_as` the earlier.
 """
 
 from __future__ import annotations

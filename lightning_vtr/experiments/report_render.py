@@ -41,7 +41,9 @@ class ReportSummary:
 
     Attributes:
         rows: row title -> run name, in the report's row order (the configured strategies).
-        differences: ``{baseline: {row title: {view_set: Estimate or None}}}``: paired mIoU differences.
+        differences: ``{baseline: {row title: {view_set: Estimate or None}}}``: paired mIoU differences to each
+            of :data:`~lightning_vtr.experiments.report_config.BASELINES` the report runs and to its
+            ``reference``.
         validation_differences: the same on the validation split (empty when the report does not validate).
         views: row title -> statistics of its generated training views (rows that generated some).
     """
@@ -66,6 +68,8 @@ def summarize(config: ReportConfig, results: ReportResults) -> ReportSummary:
     titles = config.titles()
     rows = {titles[s]: s for s in config.variants if s in config.strategies}
     baselines = [b for b in BASELINES if b in rows.values()]
+    if config.reference is not None and config.reference not in baselines:
+        baselines.append(config.reference)
     differences = {b: paired_differences(rows, b, results.payloads, "iou@0.4", seeds) for b in baselines}
     validation_differences = {}
     if config.validation_repeats is not None:
@@ -204,10 +208,10 @@ def _ablation_sections(config: ReportConfig, results: ReportResults) -> list[str
         table = robustness_table(k_rows, payloads, ("iou@0.4",), seeds)
         sections += ["", "## Ablation: bin interval K (mIoU, %)", "", table]
     if "pool" in config.ablations:
-        pool_rows = {"Ours (with pool)": "error_guided", "Ours (without pool)": "error_guided_no_pool"}
+        pool_rows = {"Default rule (with pool)": "error_guided", "Default rule (without pool)": "error_guided_no_pool"}
         sections += ["", "## Ablation: viewpoint pool (%)", "", robustness_table(pool_rows, payloads, METRICS, seeds)]
     if "single_view" in config.ablations:
-        single_rows = {"None-VTR (1 view)": "single_view_none", "Ours (1 view)": "single_view_error_guided"}
+        single_rows = {"None-VTR (1 view)": "single_view_none", "Default rule (1 view)": "single_view_error_guided"}
         table = robustness_table(single_rows, payloads, METRICS, seeds)
         sections += ["", "## Ablation: single-view input (%)", "", table]
     return sections
@@ -233,6 +237,10 @@ def equivalent_command(config: ReportConfig) -> str:
         words += ["--ablations", ",".join(config.ablations)]
     if config.validation_repeats is not None:
         words += ["--validation-repeats", str(config.validation_repeats)]
+    if config.reference is not None:
+        words += ["--reference", config.reference]
+    if config.maps:
+        words += ["--maps", "--map-k", str(config.map_k), "--map-objects", str(config.map_objects)]
     if config.jobs > 1:
         words += ["--jobs", str(config.jobs)]
     return shlex.join(words)

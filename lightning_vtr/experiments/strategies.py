@@ -22,7 +22,16 @@ file of yours with the shipped rows. Example rows::
       callback_kwargs: {fraction: 0.2}
 
 A row's ``selector`` is a registry name (its arguments in ``selector_kwargs``) or ``{class_path, init_args}``
-(``selector_kwargs`` then adds to ``init_args``).
+(``selector_kwargs`` then adds to ``init_args``). An argument may itself be ``{class_path, init_args}``, an object
+built before the selector (e.g. a :class:`~lightning_vtr.selection.scores.ViewScore` of your own for
+:class:`~lightning_vtr.selection.ErrorGuidedSelector`'s ``score``)::
+
+    mine_scored:
+      title: My score
+      description: the default rule's bins, chosen by my own view score
+      selector: error_guided
+      selector_kwargs:
+        score: {class_path: my_scores.EdgeScore, init_args: {weight: 2.0}}
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ __all__ = [
     "VARIANTS",
     "StrategyFileError",
     "StrategyVariant",
+    "build_arguments",
     "load_variants",
     "report_variants",
     "selector_class",
@@ -115,7 +125,7 @@ class StrategyVariant:
 
         Example::
 
-            VARIANTS["random_fresh"].max_samples(170)  # 34
+            StrategyVariant("random", max_samples_fraction=0.2).max_samples(170)  # 34
         """
         if self.max_samples_fraction is None:
             return None
@@ -182,6 +192,61 @@ def selector_class(name: str, where: str = "selector") -> type:
     return cls
 
 
+def _is_class_spec(value: Any) -> bool:
+    return isinstance(value, Mapping) and "class_path" in value and set(value) <= {"class_path", "init_args"}
+
+
+def _check_nested(value: Any, where: str) -> None:
+    """Check that every ``{class_path, init_args}`` inside a row's arguments names an importable class."""
+    from lightning_vtr.models.registry import import_class
+
+    if _is_class_spec(value):
+        if not isinstance(value["class_path"], str):
+            raise StrategyFileError(f"{where}: `class_path` must be a string module.Class, got {value['class_path']!r}")
+        try:
+            import_class(value["class_path"], where)
+        except ValueError as error:
+            raise StrategyFileError(str(error)) from None
+        init_args = value.get("init_args") or {}
+        if not isinstance(init_args, Mapping):
+            raise StrategyFileError(f"{where}: `init_args` must be a mapping, got {type(init_args).__name__}")
+        for key, item in init_args.items():
+            _check_nested(item, f"{where}, {key}")
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            _check_nested(item, f"{where}, {key}")
+
+
+def build_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
+    """A row's selector arguments with every ``{class_path, init_args}`` value built into its object.
+
+    Args:
+        arguments: keyword arguments of a selector class; a value that is a mapping of ``class_path`` (an import
+            path ``module.Class``, the working folder importable) and optional ``init_args`` becomes
+            ``Class(**init_args)``, its own such values built first.
+
+    Returns:
+        A new dict; the other values as given.
+
+    Raises:
+        ValueError: a ``class_path`` that does not import (a :class:`~lightning_vtr.errors.UsageError`).
+
+    Example:
+        >>> build_arguments({"score": {"class_path": "lightning_vtr.selection.ReleasedScore",
+        ...                            "init_args": {"eps": 0.1}}, "k": 30})
+        {'score': ReleasedScore(mode='soft', mask='gt', reduction='mean', eps=0.1), 'k': 30}
+    """
+    from lightning_vtr.models.registry import import_class
+
+    def build(value: Any) -> Any:
+        if _is_class_spec(value):
+            init_args = {key: build(item) for key, item in (value.get("init_args") or {}).items()}
+            return import_class(value["class_path"], "class_path")(**init_args)
+        return value
+
+    return {key: build(value) for key, value in arguments.items()}
+
+
 def _parameters(cls: type) -> set[str] | None:
     """Names of the keyword arguments ``cls`` takes; ``None`` when it takes any (``**kwargs``)."""
     parameters = inspect.signature(cls).parameters.values()
@@ -242,6 +307,8 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
         selector_kwargs = {**init_args, **row.get("selector_kwargs", {})}
         label = "selector_kwargs" if not init_args else "selector init_args / selector_kwargs"
         _unknown(f"{where}, {label}", selector_kwargs, _parameters(cls))
+        for key, value in selector_kwargs.items():
+            _check_nested(value, f"{where}, {label}, {key}")
         callback_kwargs = row.get("callback_kwargs", {})
         for key, reason in _RESERVED_CALLBACK_KEYS.items():
             if key in callback_kwargs:
@@ -282,7 +349,7 @@ def load_variants(path: str | Path = STRATEGIES_FILE) -> dict[str, StrategyVaria
     Example::
 
         variants = load_variants("my_strategies.yaml")
-        make_strategy("visible_nms", config, variants=variants)
+        make_strategy("visible_fresh", config, variants=variants)  # a row of that file
     """
     import yaml
 
@@ -354,8 +421,12 @@ def report_variants(path: str | Path | None = None, *, replace: bool = False) ->
     return merged
 
 
-DEFAULT_STRATEGY = "visible_tau10_search"
-"""The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments (the examples' "Ours")."""
+DEFAULT_STRATEGY = "error_guided"
+"""The row that equals ``ErrorGuidedViewAugmentation()`` with no arguments: the package's default rule."""
+STRATEGIES: tuple[str, ...] = ("none", "nature", "random", "viat", "mvtn", "paper")
+"""The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), Nature, Random as the paper
+draws it (angle-uniform), VIAT, MVTN and the paper's rule (``ErrorGuidedViewAugmentation.paper()``); each is a
+name in :data:`VARIANTS`."""
 _LAZY: dict[str, Any] = {}
 
 
@@ -367,22 +438,14 @@ def _shipped() -> dict[str, StrategyVariant]:
 
 
 def __getattr__(name: str) -> Any:
-    # VARIANTS and STRATEGIES import the selectors (torch): read on first use, so `lightning-vtr report --help`
-    # stays light.
+    # VARIANTS imports the selectors (torch): read on first use, so `lightning-vtr report --help` stays light.
     if name == "VARIANTS":
         return _shipped()
-    if name == "STRATEGIES":
-        from lightning_vtr.selection import SELECTORS
-
-        return ("none", *SELECTORS)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 if TYPE_CHECKING:
     VARIANTS: dict[str, StrategyVariant]
-    """Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`.
-    The paper's Table 1 strategies (:data:`STRATEGIES`) take each selector's package defaults with the paper's
-    callback settings, so ``"error_guided"`` is the paper's rule (``ErrorGuidedViewAugmentation.paper()``)."""
-    STRATEGIES: tuple[str, ...]
-    """The paper's Table 1 strategies, in its row order: ``"none"`` (no augmentation), then every selector of
-    :data:`lightning_vtr.selection.SELECTORS` with its defaults; each is a name in :data:`VARIANTS`."""
+    """Strategy name -> :class:`StrategyVariant`, in the report's row order: the rows of :data:`STRATEGIES_FILE`:
+    the paper's Table 1 strategies (:data:`STRATEGIES`), ``"random_area"`` (area-uniform Random) and
+    ``"error_guided"`` (:data:`DEFAULT_STRATEGY`, the package's default rule)."""

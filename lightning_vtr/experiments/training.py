@@ -27,6 +27,7 @@ from lightning_vtr.experiments.strategies import (
     STRATEGIES,
     VARIANTS,
     StrategyVariant,
+    build_arguments,
     callback_arguments,
     selector_class,
 )
@@ -506,8 +507,8 @@ def make_strategy(
 
     Args:
         name: a name in ``variants``: ``"none"``, a strategy of the paper's Table 1 (``"nature"``,
-            ``"random"``, ``"viat"``, ``"mvtn"``, ``"error_guided"``), ``"random_area"``, ``"paper"`` or a
-            variant of the error-guided method (``"released"``, ``"visible"``, ...).
+            ``"random"``, ``"viat"``, ``"mvtn"``, ``"paper"``), ``"random_area"``, ``"error_guided"`` (the
+            default rule) or a row of a strategies file of yours.
         config: supplies ``fraction`` and ``seed`` of the callback, and the dataset of a row's
             ``max_samples_fraction``.
         synthesizer: the callback's synthesizer (``None``: mesh rendering).
@@ -528,13 +529,13 @@ def make_strategy(
 
     Example::
 
-        callback = make_strategy("visible_nms", ExperimentConfig(fraction=0.1), selector_kwargs={"k": 15})
+        callback = make_strategy("error_guided", ExperimentConfig(fraction=0.1), selector_kwargs={"k": 15})
     """
     variants = VARIANTS if variants is None else variants
     variant = variants[check_choice("name", name, variants)]
     if variant.selector is None:
         return None
-    arguments = {**variant.selector_kwargs, **(selector_kwargs or {})}
+    arguments = build_arguments({**variant.selector_kwargs, **(selector_kwargs or {})})
     if variant.selector in SELECTORS:
         selector = make_selector(variant.selector, **arguments)
     else:
@@ -557,8 +558,8 @@ def resolved_strategy(
 ) -> dict[str, Any] | None:
     """Every argument :func:`make_strategy` would give the selector and the callback, defaults filled in.
 
-    Two strategies with equal resolved forms train the same run (the callback's default and ``"paper"`` while the
-    default is the paper's rule), so the report fits it once. A row's ``max_samples_fraction`` stays a fraction
+    Two strategies with equal resolved forms train the same run (e.g. a row of your strategies file that repeats a
+    shipped rule), so the report fits it once. A row's ``max_samples_fraction`` stays a fraction
     (``callback_kwargs["max_samples_fraction"]``) unless ``callback_kwargs`` give ``max_samples``.
 
     Args:

@@ -7,14 +7,21 @@ model's ``spec`` attribute. :func:`load_weights` reads pretrained weights from a
 (:mod:`lightning_vtr.models.registry`).
 """
 
-from lightning_vtr.models.base import VoxelReconstructionModule
-from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
-from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
-from lightning_vtr.models.registry import MODELS, check_checkpoint, load_model
-from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
-from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
-from lightning_vtr.models.weights import IMAGENET_WEIGHTS, WeightsDownloadError, load_weights
-from lightning_vtr.protocol import VIEW_SETS
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from lightning_vtr.utils.exports import lazy_exports
+
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+    from lightning_vtr.models.base import VoxelReconstructionModule
+    from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
+    from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
+    from lightning_vtr.models.registry import MODELS, check_checkpoint, load_model
+    from lightning_vtr.models.resnet import ResNet50Stem, load_torchvision_resnet50
+    from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
+    from lightning_vtr.models.weights import IMAGENET_WEIGHTS, WeightsDownloadError, load_weights
+    from lightning_vtr.protocol import VIEW_SETS
 
 __all__ = [
     "IMAGENET_WEIGHTS",
@@ -36,3 +43,16 @@ __all__ = [
     "load_torchvision_resnet50",
     "load_weights",
 ]
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "lightning_vtr.models.base": ["VoxelReconstructionModule"],
+        "lightning_vtr.models.lrgt": ["LRGT", "LRGT_PRESETS", "LRGTSpec"],
+        "lightning_vtr.models.pix2vox": ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec"],
+        "lightning_vtr.models.registry": ["MODELS", "check_checkpoint", "load_model"],
+        "lightning_vtr.models.resnet": ["ResNet50Stem", "load_torchvision_resnet50"],
+        "lightning_vtr.models.vit": ["DistilledVisionTransformer", "load_timm_deit"],
+        "lightning_vtr.models.weights": ["IMAGENET_WEIGHTS", "WeightsDownloadError", "load_weights"],
+        "lightning_vtr.protocol": ["VIEW_SETS"],
+    },
+)

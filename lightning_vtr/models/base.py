@@ -80,7 +80,7 @@ def build_adam(optimizer_class: type[_AdamT], params: Iterable[Any], **kwargs: A
     every parameter allows it.
 
     The fused step updates all parameters in one kernel per device; the default one loops over the parameters
-    in Python on the CPU (tiny LRGT: 0.7 ms against 3.5 ms per step on 2 cores). It is the same update up to
+    in Python on the CPU. It is the same update up to
     rounding, and needs floating-point parameters on the CPU or CUDA (otherwise the optimizer is torch's
     default). The fused kernel reads a gradient in its parameter's memory layout: a gradient in another layout
     (autograd never makes one; code that assigns ``.grad`` can) would be updated element by element against the

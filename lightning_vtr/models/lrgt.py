@@ -210,12 +210,11 @@ LRGT_PRESETS: dict[str, LRGTSpec] = {
 """The named presets. ``paper``: the published model (DeiT-B distilled, 224 px, 14x14 tokens, 129.8 M
 parameters). ``tiny``: the same encoder, merger and query decoder at small widths, 64 px input, sized to train
 on a CPU; 8x8 tokens with stride 4 keep groups of 4 tokens per view, and the decoder has one attention head. Its
-decoder upsamples the queries with transposed convolutions alone (``decoder_stage_depth=0``; 2 until 0.3, when
-the stages had 16, 4 and 1 channels): self-attention over the 512 tokens of each stage took about 60 % of a CPU
-training step. Without blocks after it, the last stage's ReLU output reaches the sigmoid head directly, so the
-head's initial weights alternate in sign (see :class:`~lightning_vtr.models.lrgt_decoder.ProgressiveUpsamplingDecoder`),
-and the stage has 6 channels (4 learned more slowly on the embedded dataset). Checkpoints record the whole
-architecture, so a model saved with 0.3's ``tiny`` loads as it was trained."""
+decoder upsamples the queries with transposed convolutions alone (``decoder_stage_depth=0``, no attention
+blocks in the stages). Without blocks after it, the last stage's ReLU output reaches the sigmoid head directly,
+so the head's initial weights alternate in sign (see
+:class:`~lightning_vtr.models.lrgt_decoder.ProgressiveUpsamplingDecoder`), and the last stage has 6 channels.
+Checkpoints record the whole architecture, so a model loads with the architecture it was trained with."""
 
 
 def _architecture_hparams(spec: LRGTSpec) -> dict[str, object]:

@@ -134,8 +134,7 @@ class ProgressiveUpsamplingDecoder(nn.Module):
     code configures 0.4 but never applies it). Without stage blocks (``stage_depth=0``, not in the paper) the head
     reads the last stage's ReLU output, which is never negative: a head whose weights all have one sign keeps
     every probability on one side of 0.5 where the features are zero, and a small learning rate takes thousands
-    of steps to flip a sign (tiny LRGT with 4 channels there drew such a head for seed 0 and learned nothing in
-    16 epochs), so the head's Kaiming draws get alternating signs.
+    of steps to flip a sign, so the head's Kaiming draws get alternating signs.
 
     Args:
         dim: ``D``, the width of the merged tokens and queries.

@@ -54,8 +54,7 @@ class Pix2VoxSpec:
         refiner_hidden: width of the refiner's bottleneck fully-connected layer.
         merger_stride: the merger scores views on a grid this many times coarser than the volume
             (average-pooled features, nearest-upsampled scores). 1 in the paper; the tiny preset
-            uses 4 (an 8^3 grid; 2 until 0.3) because scoring 32^3 voxels per view dominates a CPU
-            training step.
+            uses 4 (an 8^3 grid).
         init: initialisation of every layer but a ResNet-50 backbone: ``"reference"`` (Pix2Vox++'s:
             convolutions Kaiming-normal, BatchNorm weight 1 / bias 0, Linear N(0, 0.01), biases 0) or
             ``"torch"`` (PyTorch's defaults).
@@ -126,11 +125,11 @@ PIX2VOX_PRESETS: dict[str, Pix2VoxSpec] = {
 }
 """The named presets. ``paper``: the published model, with Pix2Vox++'s initialisation and pretraining loss.
 ``tiny``: 64 px, about 0.76 M parameters. The tiny preset is ours, not published: it keeps PyTorch's
-initialisation and ``BCE(refined)``, and its merger scores the views on an 8^3 grid (a 16^3 grid until 0.3;
-:class:`Pix2VoxPlusPlus` reads older checkpoints with the stride they were trained with)."""
+initialisation and ``BCE(refined)``, and its merger scores the views on an 8^3 grid (``merger_stride=4``; a checkpoint that does not record
+its stride loads with the one it was trained with, see :class:`Pix2VoxPlusPlus`)."""
 
 _LEGACY_MERGER_STRIDES = {"paper": 1, "tiny": 2}
-"""Each preset's merger stride in checkpoints written before ``merger_stride`` was a hyperparameter (<= 0.3)."""
+"""Each preset's merger stride in checkpoints that do not record ``merger_stride`` (the stride they were trained with)."""
 
 _RESOLUTION = 32  # four doublings from the 2^3 seed volume
 _INITS = ("reference", "torch")
@@ -401,7 +400,7 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
 
     Recipe defaults come from the preset (:class:`Pix2VoxSpec`): the ``paper`` preset uses Pix2Vox++'s
     initialisation and pretraining loss ``10 * (BCE(coarse) + BCE(refined))``; the ``tiny`` preset (ours, not
-    published) keeps PyTorch's initialisation and ``BCE(refined)``, so its runs stay comparable with 0.1.
+    published) keeps PyTorch's initialisation and ``BCE(refined)``.
     The loss is computed in float32 with autocast off (BCE refuses half precision under CUDA autocast).
 
     Args:
@@ -434,8 +433,8 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
         merger_stride: the merger's scoring grid is this many times coarser than the volume; ``None``: the
             preset's (``paper``: 1, ``tiny``: 4). A divisor of 32. It has no parameters, so a model saved with
             one stride loads into another. A checkpoint brings the stride it was trained with (resuming a fit
-            included) unless :meth:`load_from_checkpoint` is given ``merger_stride=``; one written before 0.4,
-            which does not record it, brings its preset's of then (``tiny``: 2), so it predicts as it did.
+            included) unless :meth:`load_from_checkpoint` is given ``merger_stride=``; one that does not record it loads
+            with the stride its preset was trained with (``paper``: 1, ``tiny``: 2).
 
     Raises:
         ValueError: on an unknown preset or init, weights for a preset without ResNet-50, or bad sizes.
@@ -650,8 +649,8 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
                 f"{self.preset!r} (expected {self.preset!r}). Build the model with preset={found!r} or use "
                 "Pix2VoxPlusPlus.load_from_checkpoint(path) without overriding `preset`."
             )
-        # The stride the weights were trained with (no parameters depend on it): recorded since 0.4, before that
-        # the preset's of the time. load_from_checkpoint(path, merger_stride=...) records its override there first.
+        # The stride the weights were trained with (no parameters depend on it); a checkpoint without it was
+        # trained with _LEGACY_MERGER_STRIDES. load_from_checkpoint(path, merger_stride=...) records its override there first.
         stride = hparams.get("merger_stride", _LEGACY_MERGER_STRIDES[self.preset])
         if stride != self.merger.stride:
             self._set_merger_stride(stride)

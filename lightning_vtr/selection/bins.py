@@ -12,7 +12,7 @@ from lightning_vtr.geometry import (
     sample_gaussian_viewpoints,
     wrap_yaw,
 )
-from lightning_vtr.selection.volumes import _check_tensor_ndim
+from lightning_vtr.selection.volumes import check_tensor_ndim
 from lightning_vtr.utils.validation import check_float, check_int
 
 __all__ = ["nearest_bins", "sample_around_bins", "select_views", "top_bins"]
@@ -71,7 +71,7 @@ def top_bins(scores: Tensor, n: int = 3, *, generator: torch.Generator | None = 
         >>> top_bins(torch.tensor([[0.1, 0.9, 0.5, 0.7]]), 2)
         tensor([[1, 3]])
     """
-    _check_tensor_ndim(scores, "scores", 2, "(B, V)")
+    check_tensor_ndim(scores, "scores", 2, "(B, V)")
     check_int("n", n, minimum=1, maximum=scores.shape[1])
     priority = torch.rand(scores.shape, generator=generator, dtype=torch.float64).to(scores.device)
     shuffled = torch.argsort(priority, dim=1)
@@ -122,7 +122,7 @@ def select_views(
     k = check_bin_interval(k)
     candidates = candidate_viewpoints(k)
     expected = f"(B, {candidates.shape[0]}) for K={k}"
-    _check_tensor_ndim(scores, "scores", 2, expected)
+    check_tensor_ndim(scores, "scores", 2, expected)
     if scores.shape[1] != candidates.shape[0]:
         raise ValueError(f"`scores` must have shape {expected}, got {tuple(scores.shape)}")
     sigma = k / 6.0 if sigma is None else check_float("sigma", sigma, minimum=0.0)

@@ -13,7 +13,6 @@ from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_c
 from lightning_vtr.selection.bins import sample_around_bins
 from lightning_vtr.selection.diversity import choose_bins
 from lightning_vtr.selection.scores import (
-    OBJECT_SCORES,
     SCORES,
     ProjectionScore,
     ScoreSetup,
@@ -23,7 +22,7 @@ from lightning_vtr.selection.scores import (
 from lightning_vtr.selection.volumes import check_volume_pair, error_volume
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
-__all__ = ["OBJECT_SCORES", "SCORES", "ErrorGuidedSelector", "relative_to_category"]
+__all__ = ["SCORES", "ErrorGuidedSelector", "relative_to_category"]
 
 
 def relative_to_category(scores: Tensor, categories: list[str]) -> Tensor:
@@ -55,7 +54,7 @@ class ErrorGuidedSelector(ViewSelector):
     An object with no error (all scores 0) has no preferred view and gets ``num_views`` uniform viewpoints
     instead (``fallback`` mode of :func:`~lightning_vtr.geometry.sample_uniform_viewpoints`).
 
-    ``ErrorGuidedSelector()`` is the measured default rule, the same as :meth:`default`: the ``"visible"``
+    ``ErrorGuidedSelector()`` is the package's default rule, the same as :meth:`default`: the ``"visible"``
     score, bins within 30 degrees of a chosen one (or its antipode) suppressed, bins drawn at temperature 10.
     The paper's rule (the ``"paper"`` score, the hard top ``num_views`` bins) is :meth:`paper`.
 
@@ -73,13 +72,10 @@ class ErrorGuidedSelector(ViewSelector):
       error inside ground-truth voxels, mean over hit pixels.
     * ``"visible"`` (:class:`~lightning_vtr.selection.scores.VisibleScore`): what a camera at that viewpoint
       would see wrong, on the surface of prediction and truth together. Side-aware by construction.
-    * ``"input"`` (:class:`~lightning_vtr.selection.scores.InputScore`): the model's loss when it is *given*
-      the object's image from that viewpoint, alone; needs a
-      :class:`~lightning_vtr.selection.base.SelectionContext` (``needs_context`` is then ``True``).
-    * ``"map"`` (:class:`~lightning_vtr.selection.scores.MapScore`): the category's measured failure map, the
-      model's :math:`1 - \mathrm{IoU}` given views drawn around each bin, for a few objects of each category;
-      needs a context and is ``batched`` (all searched objects in one call). Its maps are the selector's
-      state (:meth:`state_dict`).
+    * a :class:`~lightning_vtr.selection.scores.ViewScore` object of your own: a score with
+      ``needs_context`` gets a :class:`~lightning_vtr.selection.base.SelectionContext` (the selector's
+      ``needs_context`` is then ``True``); one with ``per_category`` makes the selector ``batched``; its
+      :meth:`~lightning_vtr.selection.scores.ViewScore.state_dict` is the selector's state.
 
     Which bins are kept (see :func:`~lightning_vtr.selection.diversity.choose_bins`): non-maximum suppression
     keeps chosen bins apart and never picks an antipode of a chosen bin; a temperature samples bins with
@@ -87,7 +83,7 @@ class ErrorGuidedSelector(ViewSelector):
     to area-uniform random bins (:math:`\tau \to \infty`); ``None`` for both gives the hard top ``num_views``.
 
     Args:
-        score: ``"visible"`` (default), ``"paper"``, ``"released"``, ``"input"``, ``"map"``, or a
+        score: ``"visible"`` (default), ``"paper"``, ``"released"``, or a
             :class:`~lightning_vtr.selection.scores.ViewScore` object (e.g. ``ReleasedScore(eps=0.1)``).
         k: ``30`` (default): bin interval ``K`` in degrees; must divide 180 (30 gives 72 candidate views).
         num_views: ``3`` (default): ``n``, views selected per object (the number of input views).
@@ -104,7 +100,8 @@ class ErrorGuidedSelector(ViewSelector):
         relative: ``False`` (default). ``True`` divides each object's score of a view by the mean score of
             that view over the objects of its category in the call (those with any error), so the bins are
             chosen by where this object is worse than its category. The selector is then ``batched``: the
-            callback scores all searched objects in one call (on rank 0 under DDP). Not for ``"map"``.
+            callback scores all searched objects in one call (on rank 0 under DDP). Not for a ``per_category``
+            score.
 
     Raises:
         TypeError: an argument of the wrong type (named in the message, with its value).
@@ -124,7 +121,7 @@ class ErrorGuidedSelector(ViewSelector):
 
     def __init__(
         self,
-        score: Literal["paper", "released", "visible", "input", "map"] | ViewScore = "visible",
+        score: Literal["paper", "released", "visible"] | ViewScore = "visible",
         k: int = 30,
         num_views: int = 3,
         threshold: float = DEFAULT_THRESHOLD,
@@ -160,10 +157,10 @@ class ErrorGuidedSelector(ViewSelector):
             raise ValueError(
                 f"`relative=True` does not apply to score={self.score!r}, which scores a category, not an object"
             )
-        # relative scores compare an object with the others, the map pools a category's objects: the callback
+        # relative scores compare an object with the others, a per-category score pools a category's objects: the callback
         # must pass them all in one call
         self.batched = self.relative or self.score_options.per_category
-        # the input and map scores render views and query the model
+        # a score with a context renders views and queries the model
         self.needs_context = self.score_options.needs_context
         self.candidates = candidate_viewpoints(self.k)  # (V_c, 2) degrees, pitch-major
         self.last_scores: Tensor | None = None
@@ -177,7 +174,7 @@ class ErrorGuidedSelector(ViewSelector):
 
     @classmethod
     def default(cls, **kwargs: Any) -> ErrorGuidedSelector:
-        """The measured default rule: ``score="visible"``, ``min_separation=30.0``, ``temperature=10.0``.
+        """The package's default rule: ``score="visible"``, ``min_separation=30.0``, ``temperature=10.0``.
 
         Args:
             kwargs: other constructor arguments (``k``, ``num_views``, ...), over the rule's.
@@ -223,13 +220,14 @@ class ErrorGuidedSelector(ViewSelector):
         Args:
             predicted: ``(B, R, R, R)`` occupancy probabilities.
             target: ``(B, R, R, R)`` ground-truth occupancy.
-            context: the model and synthesizer, for ``score="input"`` and ``"map"``.
-            categories: one category per object; needed by ``score="map"`` (``None``: every object alone).
-            generator: the random source of ``score="map"`` (the measured objects and their views).
+            context: the model and synthesizer, for a score with ``needs_context``.
+            categories: one category per object; needed by a ``per_category`` score (``None``: every object
+                alone).
+            generator: the random source of a score that draws (e.g. the objects and views it measures).
 
         Raises:
-            ValueError: ``score="map"`` without ``categories``; a missing or incomplete context for ``"input"``
-                or ``"map"``.
+            ValueError: a ``per_category`` score without ``categories``; a missing or incomplete context for a
+                score with ``needs_context``.
         """
         predicted, target = check_volume_pair(predicted, target)
         if categories is None:
@@ -243,14 +241,15 @@ class ErrorGuidedSelector(ViewSelector):
         return self.score_options(predicted, target, categories, self._setup(), context, generator)
 
     def state_dict(self) -> dict[str, Any]:
-        """The score's learned state (``score="map"``: its blended category maps; empty for the others)."""
+        """The score's learned state (its ``state_dict()``; empty for the shipped scores)."""
         return self.score_options.state_dict()
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state_dict` returned.
 
         Raises:
-            ValueError: a saved map of another length than this selector's ``V_c`` bins.
+            ValueError: the score refuses ``state`` (e.g. saved per-bin values of another length than this
+                selector's ``V_c`` bins).
         """
         self.score_options.load_state_dict(state, self._setup())
 

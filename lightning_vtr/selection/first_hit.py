@@ -14,14 +14,13 @@ the pixel of every voxel centre and its depth rank in every view. Per call it ta
 ``eps``, looks up their pixels and ranks, keeps the smallest rank per ``(object, view, pixel)`` with one
 ``scatter_reduce(..., "amin")`` for all views (the rank encodes depth and the tie break in one sortable
 integer), and sums (``embedding_bag``) or gathers the values of the winning voxels. A view's pixels are
-numbered in the buffer only if some voxel centre falls in them (about half of them), in pixel order, so
+numbered in the buffer only if some voxel centre falls in them, in pixel order, so
 per-view sums add the same values in the same order as over the whole image: the scores are bit-exact.
 
 Occluded voxels are left out before the scatter. The views are grouped by the octant their cameras look
 from, and a voxel is skipped for a group's views when occupied voxels of its 2x2x2 block towards that
 octant hide it in every one of them (the table keeps, per voxel and group, a smallest set of block voxels
-that does: one falls in the same pixel with a smaller rank in each view). That changes no first hit, and on
-the benchmark's objects keeps about a sixth of a surface's (voxel, view) pairs.
+that does: one falls in the same pixel with a smaller rank in each view). That changes no first hit.
 """
 
 from __future__ import annotations
@@ -35,7 +34,16 @@ from torch import Tensor
 
 from lightning_vtr.geometry import orthographic_pixel_coords, voxel_centers
 
-__all__ = ["clear_projection_cache"]
+__all__ = [
+    "clear_projection_cache",
+    "first_hits",
+    "hit_sums",
+    "hit_values",
+    "is_binary",
+    "object_chunks",
+    "projection_table",
+    "value_rows",
+]
 
 #: Depths closer than this (world units; a voxel is 1/R >= 1e-3 wide) are treated as equal.
 _DEPTH_TIE_TOLERANCE = 1e-9
@@ -44,8 +52,7 @@ _TABLE_CACHE_SIZE = 6
 #: Views processed together while building a table, to bound the float64 temporaries.
 _TABLE_VIEW_CHUNK = 16
 #: Occupied (voxel, view) pairs per chunk of objects in the score functions, before culling: bounds the
-#: index buffers (culling keeps about a sixth to a half of them, at 12 bytes each). On 2 cores, 64 objects at
-#: R = 32, K = 30 (2^22 to 2^24 pairs) scored as fast in chunks of 2^22 to 2^25 pairs, a bit faster in one.
+#: index buffers (12 bytes per pair kept).
 _SCORE_CHUNK_PAIRS = 1 << 25
 #: Buffer slots (objects x views x slots per view) per chunk of objects: at most 64 MB of int32 keys.
 _SCORE_CHUNK_SLOTS = 1 << 24
@@ -60,14 +67,14 @@ class _ViewGroup(NamedTuple):
     made of it and its 7 neighbours one step towards the cameras is occupied: in every view of the group
     one of those neighbours falls in the same pixel with a smaller key. Leaving such voxels out of the
     scatter changes no first hit: from a left-out voxel, "a smaller key in the same pixel" leads through
-    strictly smaller keys to a voxel that was kept. (:func:`_first_hits` uses a finer test of the same kind,
+    strictly smaller keys to a voxel that was kept. (:func:`first_hits` uses a finer test of the same kind,
     the table's hiding sets, and ``occludable`` for the voxels deep inside a solid.)
     """
 
     views: Tensor  # (Vg,) int64: the group's views in the viewpoint order
     slot: Tensor  # (N, Vg) buffer slots: c * S + the slot of the voxel's pixel, c the view's buffer column
     key: Tensor  # (N, Vg) first-hit keys
-    flag_key: Tensor  # (N, Vg) the keys' ranks, doubled: room for a flag bit (see _first_hits)
+    flag_key: Tensor  # (N, Vg) the keys' ranks, doubled: room for a flag bit (see first_hits)
     occludable: Tensor  # (N,) bool
     block_offset: int  # where the voxel's block towards the cameras sits in the padded block grid
 
@@ -89,7 +96,7 @@ class _Table(NamedTuple):
     flag_key: Tensor  # (G, N, W) the groups' flag keys, padded alike
     block_index: Tensor  # (N,) int64: voxel (i, j, k) at (i, j, k) of an (R + 1)^3 grid
     occludable: Tensor  # (N,) bool: occludable in every group
-    hiding: Tensor  # (N,) int64: per voxel, 8 bytes of block-code bits, one per group (see _first_hits)
+    hiding: Tensor  # (N,) int64: per voxel, 8 bytes of block-code bits, one per group (see first_hits)
     not_own: Tensor  # (G, 1) uint8: the block code bits of the other voxels than the voxel itself
     block_offsets: Tensor  # (G, 1) int64: each group's block offset
     column_of_view: Tensor  # (V,) int64: the buffer column of each view
@@ -118,7 +125,7 @@ def _view_groups(
     """Split the ``(V, N)`` pixel and key tables by the octant the cameras look from.
 
     Per group: its views, its occludable voxels (see :class:`_ViewGroup`), each voxel's hiding set and own bit
-    of the block code (see :func:`_first_hits`), and its block offset.
+    of the block code (see :func:`first_hits`), and its block offset.
     """
     centres = voxel_centers(max(resolution, 2), torch.float64)
     points = torch.stack([centres[0, 0, 0], centres[1, 0, 0], centres[0, 1, 0], centres[0, 0, 1]])
@@ -197,7 +204,7 @@ def _smallest_hitting_sets(hides: Tensor, own: int, codes: Tensor, bit_count: Te
     return torch.where(found, candidates[first.clamp(max=len(candidates) - 1)], 1 << own)
 
 
-def _projection_table(
+def projection_table(
     resolution: int, viewpoints: Tensor, image_size: int, half_extent: float, device: torch.device
 ) -> _Table:
     """Per voxel and view: the buffer slot and the sortable first-hit key (cached per argument set).
@@ -352,7 +359,7 @@ def _flat_nonzero(mask: Tensor) -> Tensor:
     return words.mul_(8).index_select(0, flags >> 3).add_(flags & 7)
 
 
-def _first_hits(
+def first_hits(
     occupied: Tensor, resolution: int, table: _Table, flags: Tensor | None = None, *, hits_only: bool = False
 ) -> Tensor:
     """Smallest first-hit key per ``(object, column, slot)`` for ``occupied (B, N)`` bool voxels: ``(B, V, S)``.
@@ -429,7 +436,7 @@ def _first_hits(
     return best
 
 
-def _object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> list[slice]:
+def object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> list[slice]:
     """Consecutive slices of the ``(B, N)`` batch of about equal numbers of (voxel, view) pairs, as few as keep each
     under :data:`_SCORE_CHUNK_PAIRS` pairs and :data:`_SCORE_CHUNK_SLOTS` buffer slots (an object alone may
     exceed them)."""
@@ -454,15 +461,15 @@ def _object_chunks(occupied: Tensor, num_views: int, slots_per_object: int) -> l
     return chunks
 
 
-def _hit_values(best: Tensor, flat: Tensor) -> Tensor:
+def hit_values(best: Tensor, flat: Tensor) -> Tensor:
     """Values of the winning voxels of ``best (B, C, S)`` keys in ``flat (B, N)``; 0 where nothing is hit."""
     winner = best.long().bitwise_and_((1 << _key_bits(flat.shape[1])) - 1).view(best.shape[0], -1)
     padded = torch.cat([flat, flat.new_zeros(flat.shape[0], 1)], 1)  # voxel N: the value of a miss
     return torch.gather(padded, 1, winner).view_as(best)
 
 
-def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
-    """``(B * (N + 1), k)`` rows for :func:`_hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
+def value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool = False) -> Tensor:
+    """``(B * (N + 1), k)`` rows for :func:`hit_sums`: each object's ``N`` values, then a 0 (voxel ``N``, a miss).
 
     In ``dtype`` (default: that of ``flat``) if it is float32 or float64, else in float32. With ``counts`` the
     rows have a second column, 1 for a voxel and 0 for the miss: the same sum then also counts the hits.
@@ -477,8 +484,8 @@ def _value_rows(flat: Tensor, dtype: torch.dtype | None = None, *, counts: bool 
     return rows.view(-1, rows.shape[-1])
 
 
-def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
-    """``(B, C, k)`` sums over slots of the ``k``-column rows (:func:`_value_rows`) of the voxels ``best (B, C, S)``
+def hit_sums(best: Tensor, rows: Tensor) -> Tensor:
+    """``(B, C, k)`` sums over slots of the ``k``-column rows (:func:`value_rows`) of the voxels ``best (B, C, S)``
     hit.
 
     The keys are turned into row numbers in place (``best`` is overwritten); one ``embedding_bag`` gathers and
@@ -495,6 +502,6 @@ def _hit_sums(best: Tensor, rows: Tensor) -> Tensor:
     return sums.view(batch, best.shape[1], rows.shape[1])
 
 
-def _is_binary(flat: Tensor, eps: float) -> bool:
+def is_binary(flat: Tensor, eps: float) -> bool:
     """Whether every voxel above ``eps`` is exactly 1 (then every hit has value 1, no gather needed)."""
     return bool((flat == 1).logical_or_(flat <= eps).all())

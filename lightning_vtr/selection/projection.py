@@ -22,18 +22,18 @@ from torch import Tensor
 from lightning_vtr.geometry import DEFAULT_HALF_EXTENT, check_viewpoints
 from lightning_vtr.selection.bins import nearest_bins, sample_around_bins, select_views, top_bins
 from lightning_vtr.selection.first_hit import (
-    _first_hits,
-    _hit_sums,
-    _hit_values,
-    _is_binary,
-    _object_chunks,
-    _projection_table,
-    _value_rows,
     clear_projection_cache,
+    first_hits,
+    hit_sums,
+    hit_values,
+    is_binary,
+    object_chunks,
+    projection_table,
+    value_rows,
 )
 from lightning_vtr.selection.volumes import (
-    _check_grid_shape,
-    _check_tensor_ndim,
+    check_grid_shape,
+    check_tensor_ndim,
     check_volume_pair,
     check_volumes,
     error_volume,
@@ -50,6 +50,7 @@ __all__ = [
     "projection_scores",
     "sample_around_bins",
     "select_views",
+    "soft_error_scores",
     "top_bins",
     "view_scores",
     "visible_error_scores",
@@ -95,7 +96,7 @@ def projection_scores(
         True
     """
     # Shape only: converting a bool grid to float would cost what this function exists to save.
-    _check_grid_shape(volumes, "volumes")
+    check_grid_shape(volumes, "volumes")
     if not (volumes.is_floating_point() or volumes.dtype == torch.bool):
         raise TypeError(f"`volumes` must be a floating-point (or bool) tensor, got dtype {volumes.dtype}")
     check_choice("reduction", reduction, ("sum", "mean"))
@@ -105,12 +106,12 @@ def projection_scores(
         return torch.zeros(0, viewpoints.shape[0], dtype=dtype, device=volumes.device)
     flat = volumes.reshape(batch, -1)
     occupied = flat.bool() if binary else flat > eps  # binary: values are exactly 0 or 1
-    if binary or (binary is None and _is_binary(flat, eps)):
+    if binary or (binary is None and is_binary(flat, eps)):
         return _value_scores(occupied, volumes.shape[1], None, viewpoints, reduction, dtype)
     return _value_scores(
         occupied,
         volumes.shape[1],
-        lambda chunk: _value_rows(flat[chunk], counts=reduction == "mean"),
+        lambda chunk: value_rows(flat[chunk], counts=reduction == "mean"),
         viewpoints,
         reduction,
         dtype,
@@ -125,21 +126,21 @@ def _value_scores(
     reduction: str,
     dtype: torch.dtype,
 ) -> Tensor:
-    """:func:`projection_scores` of ``occupied (B, N)`` voxels worth their :func:`_value_rows` ``rows_of(chunk)``
+    """:func:`projection_scores` of ``occupied (B, N)`` voxels worth their :func:`value_rows` ``rows_of(chunk)``
     (with hit counts for ``"mean"``), or 1 each for ``rows_of=None``."""
     batch = occupied.shape[0]
-    table = _projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, occupied.device)
+    table = projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, occupied.device)
     columns = table.column_of_view
     total = torch.zeros(batch, viewpoints.shape[0], dtype=dtype, device=occupied.device)
     hits = torch.zeros(batch, viewpoints.shape[0], dtype=torch.int32, device=occupied.device)
-    for chunk in _object_chunks(occupied, viewpoints.shape[0], table.pixel_of.numel()):
+    for chunk in object_chunks(occupied, viewpoints.shape[0], table.pixel_of.numel()):
         if rows_of is None:  # every hit is worth 1: count the hit slots
-            count = _first_hits(occupied[chunk], resolution, table, hits_only=True).sum(-1, dtype=torch.int32)
+            count = first_hits(occupied[chunk], resolution, table, hits_only=True).sum(-1, dtype=torch.int32)
             hits[chunk] = count.index_select(1, columns)
             total[chunk] = hits[chunk].to(dtype)
         else:  # values: gathered and summed, with the hit count in a second column for a mean
-            best = _first_hits(occupied[chunk], resolution, table)
-            sums = _hit_sums(best, rows_of(chunk)).index_select(1, columns)
+            best = first_hits(occupied[chunk], resolution, table)
+            sums = hit_sums(best, rows_of(chunk)).index_select(1, columns)
             total[chunk] = sums[..., 0].to(dtype)
             if reduction == "mean":
                 hits[chunk] = sums[..., 1].to(torch.int32)  # exact: a count <= S^2 is exact in float32
@@ -148,7 +149,7 @@ def _value_scores(
     return torch.where(hits > 0, total / hits.clamp_min(1).to(dtype), torch.zeros_like(total))
 
 
-def _soft_error_scores(
+def soft_error_scores(
     predicted: Tensor,
     target: Tensor,
     viewpoints: Tensor,
@@ -172,7 +173,7 @@ def _soft_error_scores(
         errors = error_volume(predicted, target, mode="soft", mask=mask)
         return projection_scores(errors, viewpoints, reduction=reduction, eps=eps, binary=False)
     flat_target = target.reshape(batch, -1)
-    # as _value_rows(error_volume(...)): |predicted - target| (0 outside the truth), then a 0 for a miss; for a
+    # as value_rows(error_volume(...)): |predicted - target| (0 outside the truth), then a 0 for a miss; for a
     # mean a second column of ones (0 for a miss) counts the hits
     shape = (batch, flat_target.shape[1] + 1, 2 if reduction == "mean" else 1)
     rows = predicted.new_ones(shape) if reduction == "mean" else predicted.new_empty(shape)
@@ -221,15 +222,15 @@ def visible_error_scores(
     occupied_pred, occupied_gt = predicted >= threshold, target >= 0.5
     errors = occupied_pred != occupied_gt if mode == "binary" else (predicted - target).abs()
     surface, errors = (occupied_pred | occupied_gt).reshape(batch, -1), errors.reshape(batch, -1)
-    table = _projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, predicted.device)
+    table = projection_table(resolution, viewpoints, resolution, DEFAULT_HALF_EXTENT, predicted.device)
     scores = predicted.new_zeros(batch, viewpoints.shape[0])
-    for chunk in _object_chunks(surface, viewpoints.shape[0], table.pixel_of.numel()):
+    for chunk in object_chunks(surface, viewpoints.shape[0], table.pixel_of.numel()):
         if mode == "binary":  # the keys carry the error bit of the first hit
-            best = _first_hits(surface[chunk], resolution, table, errors[chunk])
+            best = first_hits(surface[chunk], resolution, table, errors[chunk])
             seen = best.bitwise_and_(1).sum(-1, dtype=torch.int32)
         else:
-            best = _first_hits(surface[chunk], resolution, table)
-            seen = _hit_sums(best, _value_rows(errors[chunk], predicted.dtype))[..., 0]
+            best = first_hits(surface[chunk], resolution, table)
+            seen = hit_sums(best, value_rows(errors[chunk], predicted.dtype))[..., 0]
         scores[chunk] = seen.index_select(1, table.column_of_view).to(scores.dtype)
     return scores
 
@@ -300,11 +301,11 @@ def error_projection(
         return result[0] if unbatched else result
 
     flat = vol.reshape(batch, -1)
-    table = _projection_table(resolution, vp, size, half_extent, vol.device)
-    if _is_binary(flat, eps):  # the paper's binary error: every hit has value 1
-        maps = _first_hits(flat > eps, resolution, table, hits_only=True).to(vol.dtype)
+    table = projection_table(resolution, vp, size, half_extent, vol.device)
+    if is_binary(flat, eps):  # the paper's binary error: every hit has value 1
+        maps = first_hits(flat > eps, resolution, table, hits_only=True).to(vol.dtype)
     else:
-        maps = _hit_values(_first_hits(flat > eps, resolution, table), flat)
+        maps = hit_values(first_hits(flat > eps, resolution, table), flat)
     # from the slots of each view's column back to its image (unused slots and the sink go to pixel S^2, dropped)
     columns = table.column_of_view
     result = vol.new_zeros(batch, vp.shape[0], size * size + 1)
@@ -337,7 +338,7 @@ def view_scores(projections: Tensor, *, reduction: Literal["sum", "mean"] = "sum
         >>> view_scores(maps, reduction="mean")
         tensor([[1., 1.]])
     """
-    _check_tensor_ndim(projections, "projections", 4, "(B, V, S, S)")
+    check_tensor_ndim(projections, "projections", 4, "(B, V, S, S)")
     check_choice("reduction", reduction, ("sum", "mean"))
     total = projections.sum(dim=(-2, -1))
     if reduction == "sum":

@@ -9,10 +9,11 @@ from torch import Tensor
 
 from lightning_vtr.utils.validation import check_choice, check_float
 
-__all__ = ["check_volume_pair", "check_volumes", "error_volume"]
+__all__ = ["check_grid_shape", "check_tensor_ndim", "check_volume_pair", "check_volumes", "error_volume"]
 
 
-def _check_grid_shape(volumes: Tensor, name: str) -> None:
+def check_grid_shape(volumes: Tensor, name: str) -> None:
+    """Raise unless ``volumes`` is a tensor of cubic grids ``(B, R, R, R)`` with ``R >= 1`` (``name`` in the message)."""
     if not isinstance(volumes, Tensor):
         raise TypeError(f"`{name}` must be a torch.Tensor, got {type(volumes).__name__}")
     if volumes.ndim != 4 or not (volumes.shape[1] == volumes.shape[2] == volumes.shape[3]):
@@ -21,7 +22,8 @@ def _check_grid_shape(volumes: Tensor, name: str) -> None:
         raise ValueError(f"`{name}` must be a non-empty grid (R >= 1), got shape {tuple(volumes.shape)}")
 
 
-def _check_tensor_ndim(value: Tensor, name: str, ndim: int, shape: str) -> None:
+def check_tensor_ndim(value: Tensor, name: str, ndim: int, shape: str) -> None:
+    """Raise unless ``value`` is a tensor with ``ndim`` dimensions (``shape``, e.g. ``"(B, V)"``, in the message)."""
     if not isinstance(value, Tensor):
         raise TypeError(f"`{name}` must be a torch.Tensor of shape {shape}, got {type(value).__name__}")
     if value.ndim != ndim:
@@ -48,7 +50,7 @@ def check_volumes(volumes: Tensor, name: str = "volumes") -> Tensor:
         >>> check_volumes(torch.ones(1, 2, 2, 2, dtype=torch.bool)).dtype
         torch.float32
     """
-    _check_grid_shape(volumes, name)
+    check_grid_shape(volumes, name)
     if volumes.dtype == torch.bool:
         return volumes.to(torch.get_default_dtype())
     if not volumes.is_floating_point():

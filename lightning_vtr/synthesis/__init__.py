@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
-from lightning_vtr.synthesis.cache import CachedSynthesizer, SynthesisCache
-from lightning_vtr.synthesis.pose import nearest_source_view, relative_pose
-from lightning_vtr.synthesis.render import RenderSynthesizer
-from lightning_vtr.synthesis.zero123 import Zero123CheckpointError, Zero123Synthesizer
+from typing import TYPE_CHECKING
+
+from lightning_vtr.utils.exports import lazy_exports
+
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+    from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
+    from lightning_vtr.synthesis.cache import CachedSynthesizer, SynthesisCache
+    from lightning_vtr.synthesis.pose import nearest_source_view, relative_pose
+    from lightning_vtr.synthesis.render import RenderSynthesizer
+    from lightning_vtr.synthesis.zero123 import Zero123CheckpointError, Zero123Synthesizer
 
 __all__ = [
     "CachedSynthesizer",
@@ -19,3 +24,13 @@ __all__ = [
     "nearest_source_view",
     "relative_pose",
 ]
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "lightning_vtr.synthesis.base": ["SynthesisRequest", "Synthesizer"],
+        "lightning_vtr.synthesis.cache": ["CachedSynthesizer", "SynthesisCache"],
+        "lightning_vtr.synthesis.pose": ["nearest_source_view", "relative_pose"],
+        "lightning_vtr.synthesis.render": ["RenderSynthesizer"],
+        "lightning_vtr.synthesis.zero123": ["Zero123CheckpointError", "Zero123Synthesizer"],
+    },
+)

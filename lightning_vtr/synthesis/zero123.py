@@ -9,9 +9,6 @@ rest of the package works without them (``pip install lightning-vtr[zero123]``).
 Checkpoint files (variants, shards, the noise schedule, the pose convention) are read by
 :mod:`~lightning_vtr.synthesis.zero123_checkpoint`; Hub ids are resolved by :mod:`~lightning_vtr.synthesis.zero123_hub`.
 The package's tests exercise tiny randomly initialised models only, not released checkpoints.
-
-One module, past 600 lines, because the components, the pose embedding, the preprocessing and the sampling
-loop share one image and pose convention that splitting would spread over several files.
 """
 
 from __future__ import annotations

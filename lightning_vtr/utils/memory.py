@@ -2,9 +2,8 @@
 
 A CPU training step allocates and frees the same large tensors every step (the tiny models' 32^3 volumes are
 12.6 MB each). With glibc's defaults the freed top of the heap goes back to the operating system as soon as
-more than a few tens of megabytes are free, so the next step takes every page of it again as a page fault:
-about 17,000 faults per tiny-LRGT step on 2 cores, which trains about 12 % slower for it (117 against 133
-samples/s). :func:`retain_freed_memory` tells glibc to keep up to 256 MiB of freed memory and to serve tensors up
+more than a few tens of megabytes are free, so the next step takes every page of it again as a page fault.
+:func:`retain_freed_memory` tells glibc to keep up to 256 MiB of freed memory and to serve tensors up
 to 32 MiB from it, the way PyTorch's CUDA allocator keeps GPU memory. The ``lightning-vtr`` command and the experiment runners (the examples, ``lightning-vtr report``)
 call it; a script that trains with its own ``Trainer`` can call it once at its start.
 """

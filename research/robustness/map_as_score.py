@@ -1,6 +1,6 @@
 """Does the training objects' robustness map, pooled per category, predict a test object's failures?
 
-Run from the repository root after `python examples/pix2vox_vtr.py` and the `lightning-vtr robustness ...
+Run from the repository root (`python -m research.robustness.map_as_score`) after `python examples/pix2vox_vtr.py` and the `lightning-vtr robustness ...
 --out robustness` command in research/notes/results.md; prints one validity table per checkpoint.
 """
 
@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lightning_vtr.evaluation import RobustnessMap, format_validity_table, robustness_map, validity_rows
+from lightning_vtr.evaluation import RobustnessMap, robustness_map
 from lightning_vtr.evaluation.predict import make_datamodule
 from lightning_vtr.models import load_model
+from research.score_validity import format_validity_table, validity_rows
 
 DATA = Path.home() / ".cache/lightning_vtr/embedded-7362fcef56"
 for name, ckpt in [

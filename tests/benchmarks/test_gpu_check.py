@@ -11,6 +11,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+import torch
 
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_check.py"
 
@@ -128,6 +129,77 @@ def test_a_failed_renderer_probe_skips_only_the_rendering_rows(gpu_check, tmp_pa
     assert table[4].skipped == "no GPU"
 
 
+def test_without_the_renderer_a_row_runs_its_replacement_or_is_skipped_with_the_hint(gpu_check, tmp_path):
+    failing = gpu_check.RowSpec("renderer probe", _python_row("raise SystemExit(3)"), 30)
+    specs = [
+        gpu_check.RowSpec(
+            "fit (render)",
+            _ok(1),
+            30,
+            needs_renderer=True,
+            without_renderer=gpu_check.RowSpec("fit (zero123)", _ok(2), 30),
+        ),
+        gpu_check.RowSpec("render only", _ok(3), 30, needs_renderer=True, without_renderer_hint="; pass --dataset"),
+    ]
+    table = gpu_check.run_table(
+        specs, tmp_path / "a", ["c"], budget_s=60, start=time.perf_counter(), renderer_probe=failing
+    )
+    assert [row.check for row in table] == ["renderer probe", "fit (zero123)", "render only"]
+    assert table[1].results == {"v": 2} and table[1].error is None
+    assert table[2].skipped == "renderer probe failed: its process ended with code 3 without a result; pass --dataset"
+
+    # --no-render: the probe never runs (it would succeed here), the same replacement runs
+    working = gpu_check.RowSpec("renderer probe", _ok(9), 30)
+    table = gpu_check.run_table(
+        specs, tmp_path / "b", ["c"], budget_s=60, start=time.perf_counter(), renderer_probe=working, renderer_off="off"
+    )
+    assert [(row.check, row.skipped) for row in table] == [
+        ("renderer probe", "off"),
+        ("fit (zero123)", None),
+        ("render only", "off; pass --dataset"),
+    ]
+    assert table[1].results == {"v": 2}
+    assert sorted(p.name for p in (tmp_path / "b" / "logs").iterdir()) == ["fit_zero123.log"]
+
+    # a working renderer: the rows themselves run
+    table = gpu_check.run_table(
+        specs, tmp_path / "c", ["c"], budget_s=60, start=time.perf_counter(), renderer_probe=working
+    )
+    assert [(row.check, row.results) for row in table] == [
+        ("renderer probe", {"v": 9}),
+        ("fit (render)", {"v": 1}),
+        ("render only", {"v": 3}),
+    ]
+
+
+def test_a_fit_row_without_a_dataset_is_skipped_with_the_hint_when_rendering_is_off(gpu_check, tmp_path):
+    code = gpu_check.main(
+        ["--tiny", "--device", "cpu", "--no-render", "--out", str(tmp_path), "--rows", "fit: LRGT tiny + callback"]
+    )
+    assert code == 1
+    records = [json.loads(line) for line in (tmp_path / "gpu_check.jsonl").read_text().splitlines()]
+    assert [(r["check"], r["skipped"]) for r in records[1:]] == [
+        ("renderer probe", "--no-render: the fit rows use zero123 tiny (with --dataset) instead of rendering"),
+        (
+            "fit: LRGT tiny + callback (bf16-mixed, render)",
+            "--no-render: the fit rows use zero123 tiny (with --dataset) instead of rendering; without --dataset DIR "
+            "(built by --build-dataset DIR) the row renders its dataset",
+        ),
+    ]
+    with pytest.raises(SystemExit):
+        gpu_check.main(["--tiny", "--out", str(tmp_path), "--dataset", str(tmp_path / "none")])
+
+
+def test_tiny_zero123_components_are_the_tests_tiny_model(gpu_check):
+    fixtures = gpu_check._load(SCRIPT.parents[1] / "tests" / "synthesis" / "conftest.py", "_gpu_check_fixtures")
+    ours, tests = gpu_check.tiny_zero123_components(), fixtures.build_tiny_components()
+    for name in ("unet", "vae", "image_encoder", "projection"):
+        a, b = ours[name].state_dict(), tests[name].state_dict()
+        assert {k: v.shape for k, v in a.items()} == {k: v.shape for k, v in b.items()}, name
+        assert all(torch.equal(a[k], b[k]) for k in a), name  # the same seed, the same weights
+    assert ours["scheduler"].config == tests["scheduler"].config
+
+
 def test_full_size_rows_are_refused_on_a_cpu(gpu_check, tmp_path):
     code = gpu_check.main(["--device", "cpu", "--out", str(tmp_path), "--rows", "zero123,selection: paper"])
     assert code == 1
@@ -199,3 +271,47 @@ def test_tiny_cpu_run_writes_real_rows(gpu_check, tmp_path, capsys):
     assert selection["best objects/s"] >= selection["objects/s"]
     assert printed.strip().splitlines()[-2].startswith("| train: LRGT bf16-mixed | cpu, tiny preset")
     assert printed.rstrip().endswith((tmp_path / "gpu_check.md").read_text().rstrip())
+
+
+@pytest.mark.slow
+def test_tiny_fit_row_without_opengl_runs_zero123_and_never_imports_pyrender(gpu_check, tmp_path):
+    # pyrender, OpenGL and pyglet that fail to import, as on a machine without libGL / libEGL, and note who tried
+    blocked, marker = tmp_path / "blocked", tmp_path / "imports.txt"
+    for name in ("pyrender", "OpenGL", "pyglet"):
+        (blocked / name).mkdir(parents=True)
+        (blocked / name / "__init__.py").write_text(
+            f"import sys\nopen({str(marker)!r}, 'a').write({name!r} + ' ' + ' '.join(sys.argv[1:]) + '\\n')\n"
+            f"raise ImportError('Unable to load OpenGL library ({name} blocked by the test)')\n"
+        )
+    dataset = tmp_path / "data"
+    assert gpu_check.main(["--tiny", "--build-dataset", str(dataset)]) == 0  # built here, where rendering works
+    out = tmp_path / "out"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("PYTHONPATH", str(blocked))
+        code = gpu_check.main(
+            [
+                "--tiny",
+                "--device",
+                "cpu",
+                "--dataset",
+                str(dataset),
+                "--out",
+                str(out),
+                "--rows",
+                "fit: LRGT tiny + callback",
+            ]
+        )
+    records = [json.loads(line) for line in (out / "gpu_check.jsonl").read_text().splitlines()]
+    probe, fit = records[1:]
+    assert probe["check"] == "renderer probe" and "Unable to load OpenGL library" in probe["error"]
+    assert code == 1  # the failed probe counts as an error
+    assert fit["check"] == "fit: LRGT tiny + callback (bf16-mixed, zero123 tiny)", fit
+    assert fit["error"] is None, fit["error"]
+    assert "Zero-1-to-3 tiny random weights 64 px, float32, 2 DDIM steps, 32 px dataset" in fit["setup"]
+    results = fit["results"]
+    assert results["train objects"] == 6  # 2 categories x 5 objects split 3/1/1
+    assert results["generated samples"] == 2 * round(gpu_check.FIT_FRACTION * 6)
+    assert math.isfinite(results["final loss"]) and results["final loss"] > 0
+    tried = marker.read_text().splitlines()
+    assert tried and all("--child-row" not in line for line in tried), tried  # the probe and report only
+    assert any("--child-renderer" in line for line in tried), tried

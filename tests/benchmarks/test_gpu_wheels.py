@@ -107,10 +107,13 @@ print(json.dumps({
 
 @pytest.mark.slow
 def test_wheel_set_is_what_the_image_lacks_and_the_package_imports_from_it(tmp_path):
-    wheels = tmp_path / "wheels"
-    done = subprocess.run(["bash", str(PREPARE), str(wheels)], capture_output=True, text=True, timeout=600)
+    wheels, dataset = tmp_path / "wheels", tmp_path / "dataset"
+    done = subprocess.run(
+        ["bash", str(PREPARE), str(wheels), str(dataset)], capture_output=True, text=True, timeout=600
+    )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert f'--wheels {wheels} --out "$OUT" --budget-s 420' in done.stdout.splitlines()[-1]
+    assert f'--wheels {wheels} --dataset {dataset} --out "$OUT" --budget-s 420' in done.stdout.splitlines()[-1]
+    assert json.loads((dataset / "metadata.json").read_text())["image_size"] == 64  # the fit rows' dataset
 
     files = sorted(wheels.glob("*.whl"))
     listed = [line.split("#")[0].strip() for line in LIST.read_text().splitlines()]

@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 
 import pytest
 
 import lightning_vtr.cli.lightning as lightning_cli
 from lightning_vtr.cli import main
-from lightning_vtr.cli.dispatch import COMMANDS, LIGHTNING_COMMANDS, build_parser
+from lightning_vtr.cli.dispatch import (
+    COMMANDS,
+    HELP_DIR,
+    HELP_ENVIRONMENT_FILE,
+    LIGHTNING_COMMANDS,
+    build_parser,
+    help_environment,
+    shipped_help,
+)
 
 # The dispatcher module (`lightning_vtr.cli.main` is the function the package exports).
 MAIN_MODULE = importlib.import_module("lightning_vtr.cli.dispatch")
@@ -80,10 +89,120 @@ def test_written_out_choices_equal_the_library_constants():
 
 
 def test_fit_help_hides_the_removed_option(capsys):
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exit_info:
         main(["fit", "--help"])
     printed = capsys.readouterr().out
+    assert exit_info.value.code == 0
     assert "--data.max_generated" not in printed and "--data.root" in printed
+
+
+def _written_here() -> bool:
+    """Whether this environment is the one the shipped help texts were written in (else the live parser serves)."""
+    recorded = json.loads((HELP_DIR / HELP_ENVIRONMENT_FILE).read_text(encoding="utf-8"))
+    return recorded == help_environment()
+
+
+def _assert_the_live_parser_serves_help_here():
+    # another Python or library version: the shipped texts are not used, so they cannot mislead
+    for command in LIGHTNING_COMMANDS:
+        assert shipped_help([command, "--help"]) is None
+
+
+@pytest.mark.slow
+def test_the_shipped_lightning_help_equals_the_live_parsers():
+    import os
+    import subprocess
+
+    if not _written_here():
+        _assert_the_live_parser_serves_help_here()
+        return
+
+    # a fresh process: the texts list the "known subclasses" of the imported modules, and this one imported more;
+    # a wide terminal there must not change the texts (they are wrapped at 80 columns)
+    code = "import json\nfrom lightning_vtr.cli.gen_help import generate\nprint(json.dumps(generate()))"
+    env = {**os.environ, "COLUMNS": "200"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    live = json.loads(done.stdout)
+    assert set(live) == {"fit.txt", "validate.txt", "test.txt", HELP_ENVIRONMENT_FILE}
+    for name, text in live.items():
+        shipped = (HELP_DIR / name).read_text(encoding="utf-8")
+        assert shipped == text, (
+            f"{HELP_DIR / name} differs from the live LightningCLI parser's text: regenerate the shipped help with "
+            "`python -m lightning_vtr.cli.gen_help`"
+        )
+    for command in LIGHTNING_COMMANDS:
+        assert live[f"{command}.txt"].startswith(f"usage: lightning-vtr [options] {command} [-c CONFIG]\n")
+        assert "--data.root" in live[f"{command}.txt"] and "max_generated" not in live[f"{command}.txt"]
+
+
+def test_lightning_help_prints_the_shipped_text_without_importing_lightning():
+    import subprocess
+
+    if not _written_here():
+        _assert_the_live_parser_serves_help_here()
+        return
+
+    code = (
+        "import sys\nfrom lightning_vtr.cli import main\n"
+        "for command in ('fit', 'validate', 'test'):\n"
+        "    for flag in ('--help', '-h'):\n"
+        "        try:\n            main([command, flag])\n        except SystemExit as exit_:\n"
+        "            print(f'EXIT {exit_.code}')\n"
+        "print(sorted({'torch', 'lightning', 'jsonargparse'} & set(sys.modules)), file=sys.stderr)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert done.stderr.strip().splitlines()[-1] == "[]"
+    expected = "".join(
+        (HELP_DIR / f"{command}.txt").read_text(encoding="utf-8") + "EXIT 0\n"
+        for command in ("fit", "validate", "test")
+        for _ in range(2)
+    )
+    assert done.stdout == expected
+
+
+@pytest.mark.parametrize(
+    "words",
+    [
+        ["fit", "--config", "c.yaml", "--help"],
+        ["fit", "--model", "mymodel.MyVoxelNet", "--help"],
+        ["fit", "--help", "--trainer.max_epochs", "3"],
+        ["fit", "--print_config"],
+        ["predict", "--config", "c.yaml", "--help"],
+    ],
+)
+def test_help_of_other_lightning_command_lines_comes_from_the_live_parser(monkeypatch, words):
+    seen = []
+    monkeypatch.setattr(lightning_cli, "run_lightning_cli", lambda argv: seen.append(argv) or 0)
+    assert MAIN_MODULE.shipped_help(words) is None
+    assert main(words) == 0 and seen == [words]
+
+
+def test_help_from_another_environment_or_with_jsonargparse_settings_comes_from_the_live_parser(monkeypatch):
+    seen = []
+    monkeypatch.setattr(lightning_cli, "run_lightning_cli", lambda argv: seen.append(argv) or 0)
+    written_in = help_environment()
+    assert MAIN_MODULE.shipped_help(["test", "-h"]) == (HELP_DIR / "test.txt").read_text(encoding="utf-8")
+    monkeypatch.setattr(
+        MAIN_MODULE,
+        "help_environment",
+        lambda: {**written_in, "distributions": {**written_in["distributions"], "lightning": "9.9.9"}},
+    )
+    assert MAIN_MODULE.shipped_help(["test", "-h"]) is None
+    assert main(["test", "-h"]) == 0 and seen == [["test", "-h"]]
+    monkeypatch.setattr(MAIN_MODULE, "help_environment", lambda: written_in)
+    monkeypatch.setenv("JSONARGPARSE_DEFAULT_ENV", "true")  # adds the ENV: names to the help
+    assert main(["fit", "--help"]) == 0 and seen[-1] == ["fit", "--help"]
+
+
+def test_help_environment_names_python_and_the_installed_versions():
+    from importlib.metadata import version
+
+    environment = help_environment()
+    assert environment["python"] == f"{sys.version_info.major}.{sys.version_info.minor}"
+    assert environment["distributions"]["lightning"] == version("lightning")
+    assert environment["distributions"]["jsonargparse"] == version("jsonargparse")
+    assert set(environment["distributions"]) == {"lightning", "jsonargparse", "docstring-parser", "typeshed-client"}
 
 
 @pytest.mark.parametrize("word", lightning_cli.LIGHTNING_SUBCOMMANDS)
@@ -111,3 +230,8 @@ def test_an_error_the_user_can_fix_prints_one_line_and_returns_2(monkeypatch, ca
     assert main(["dataset-info", "/nowhere"]) == 2
     err = capsys.readouterr().err
     assert err == "lightning-vtr dataset-info: error: no dataset at /nowhere\n"
+
+
+def test_lightning_help_refuses_a_command_that_is_not_lightning_clis():
+    with pytest.raises(ValueError, match="`command` must be one of fit, validate, test, predict, got 'report'"):
+        lightning_cli.lightning_help("report")

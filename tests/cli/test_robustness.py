@@ -1,5 +1,5 @@
 """``lightning-vtr robustness``: two checkpoints measured on the same objects and view sets; the CSV files, the
-difference, the pictures, the score-validity table and index.html."""
+difference, the pictures and index.html."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation.predict import make_datamodule
 from lightning_vtr.evaluation.robustness import RobustnessMap, read_bins_csv, robustness_map
 from lightning_vtr.evaluation.robustness_callback import ObjectSubset
-from lightning_vtr.evaluation.robustness_scores import selection_scores, validity_table
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 from lightning_vtr.models.registry import load_model
 
@@ -72,14 +71,14 @@ def test_two_checkpoints_give_the_library_maps_and_their_difference(tiny_dataset
     a, b = checkpoints
     out = tmp_path / "out"
     argv = ["robustness", "--ckpt", f"A={a}", "--ckpt", f"B={b}", "--data", str(tiny_dataset), "--split", "test"]
-    code = main([*argv, "--out", str(out), "--k", str(K), "--objects", "2", "--scores", "--no-progress"])
+    code = main([*argv, "--out", str(out), "--k", str(K), "--objects", "2", "--no-progress"])
     assert code == 0, capsys.readouterr().err
 
     # the objects: 2 of the test split, round-robin over the sorted categories
     dm = VTRDataModule(str(tiny_dataset))
     test = dm.split_records("test")
     records = [next(r for r in test if r.category == c) for c in ("airplane", "chair")]
-    model_a, subset_a, map_a = _library_map(a, tiny_dataset, records)
+    _, _, map_a = _library_map(a, tiny_dataset, records)
     _, _, map_b = _library_map(b, tiny_dataset, records)
     assert not np.array_equal(map_a.iou, map_b.iou)  # two different models
     assert not np.array_equal(map_a.iou[:, 0], map_a.iou[:, 5])  # bins differ
@@ -106,16 +105,12 @@ def test_two_checkpoints_give_the_library_maps_and_their_difference(tiny_dataset
     np.testing.assert_array_equal([float(r["difference"]) for r in diff], map_a.mean() - map_b.mean())
     np.testing.assert_array_equal([float(r["first"]) for r in diff], map_a.mean())
 
-    # pictures, the score validity, and the page
+    # pictures and the page
     for png in ("A.png", "B.png", "A_minus_B.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not (out / "B_minus_A.png").exists()
-    expected_a = validity_table(map_a, selection_scores(model_a, subset_a, k=K, seed=0))
-    markdown = (out / "score_validity.md").read_text()
-    assert f"## A\n\n{expected_a.rstrip()}\n" in markdown
-    assert "## B\n" in markdown
     page = (out / "index.html").read_text()
-    assert 'src="A_minus_B.png"' in page and "Score validity: B" in page
+    assert 'src="A_minus_B.png"' in page
     assert f"<td>A</td><td>{map_a.overall():.3f}</td>" in page
     printed = capsys.readouterr().out
     assert f"A: IoU over the sphere {map_a.overall():.4f} (2 objects, 8 bins)" in printed

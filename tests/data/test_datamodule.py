@@ -146,12 +146,29 @@ def test_state_dict_restores_exactly_the_injected_samples(tiny_dataset, tmp_path
 
 
 def test_missing_generated_files_are_reported(tiny_dataset, tmp_path):
+    import shutil
+
     dm = _dm(tiny_dataset, generated_dir=str(tmp_path / "gen"))
-    dm.add_samples([_sample(dm)])
+    dm.add_samples([_sample(dm, 0), _sample(dm, 1)])
     state = dm.state_dict()
-    state["generated_dir"] = str(tmp_path / "elsewhere")
-    with pytest.raises(FileNotFoundError, match="generated samples missing"):
+    dirs = [e["dir"] for e in dm.generated_samples]
+    # entries name the folder they were written to: the state's `generated_dir` is not where they are read from
+    _dm(tiny_dataset).load_state_dict({**state, "generated_dir": str(tmp_path / "elsewhere")})
+    # the run's folder moved: restoring fails naming both samples' folders ...
+    shutil.move(tmp_path / "gen", tmp_path / "moved")
+    with pytest.raises(FileNotFoundError, match="lists 2 generated samples whose folders are missing: ") as info:
         _dm(tiny_dataset).load_state_dict(state)
+    assert all(str(tmp_path / "gen" / d) in str(info.value) for d in dirs)
+    # ... and `generated_dir` at the new place restores them from there
+    restored = _dm(tiny_dataset, generated_dir=str(tmp_path / "moved"))
+    restored.load_state_dict(state)
+    assert [e["root"] for e in restored.generated_samples] == [str(tmp_path / "moved")] * 2
+    # one sample's folder deleted: restoring fails and names that folder only
+    shutil.rmtree(tmp_path / "moved" / dirs[1])
+    with pytest.raises(FileNotFoundError) as info:
+        _dm(tiny_dataset, generated_dir=str(tmp_path / "moved")).load_state_dict(state)
+    expected = f"lists 1 generated samples whose folders are missing: {tmp_path / 'moved' / dirs[1]}. Pass"
+    assert expected in str(info.value)
 
 
 def test_max_total_keeps_the_newest(tiny_dataset, tmp_path):

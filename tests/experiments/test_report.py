@@ -24,7 +24,6 @@ from lightning_vtr.experiments.report_plan import plan_runs as _plan
 from lightning_vtr.experiments.report_tables import robustness_table as _table
 from lightning_vtr.experiments.training import VARIANTS, ExperimentConfig
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.selection import SELECTORS
 
 
 def _parse_tables(markdown: str) -> dict[str, tuple[list[str], dict[str, list[str]]]]:
@@ -140,8 +139,8 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     assert header == ["Method"] + [
         f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "best mIoU", "F-score")
     ]
-    assert list(rows) == ["None-VTR", "Ours"]
-    for title, run in (("None-VTR", "none"), ("Ours", "error_guided")):
+    assert list(rows) == ["None-VTR", "Error-guided (default rule)"]
+    for title, run in (("None-VTR", "none"), ("Error-guided (default rule)", "error_guided")):
         res = runs[run]["results"]
         # best mIoU: the largest of the set's mean IoUs at 0.2 ... 0.5 (VTR's test script)
         best = {s: max(res[s][f"iou@{t}"] for t in ("0.2", "0.3", "0.4", "0.5")) for s in VIEW_SETS}
@@ -156,7 +155,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     }
     _, rows = tables["Ablation: single-view input (%)"]
     single = runs["single_view_error_guided"]["results"]
-    assert rows["Ours (1 view)"] == [
+    assert rows["Default rule (1 view)"] == [
         _pct(value)
         for s in VIEW_SETS
         for value in (
@@ -170,12 +169,12 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     # One seed: the paired difference to None-VTR without an interval; no Random row, so no table against it.
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
     diffs = [runs["error_guided"]["results"][s]["iou@0.4"] - runs["none"]["results"][s]["iou@0.4"] for s in VIEW_SETS]
-    assert rows == {"Ours": [f"{100 * d:+.2f}, {int(d != 0)}/1" for d in diffs]}
+    assert rows == {"Error-guided (default rule)": [f"{100 * d:+.2f}, {int(d != 0)}/1" for d in diffs]}
     assert "Paired difference to Random (mIoU points)" not in tables
     # The views the callback generated: a start selection and one after epoch 0, 3 objects each.
     _, rows = tables["Where the training views went"]
-    assert list(rows) == ["Ours"] and rows["Ours"][0] == "6"
-    assert sum(float(v) for v in rows["Ours"][1:7]) == pytest.approx(100, abs=0.2)
+    assert list(rows) == ["Error-guided (default rule)"] and rows["Error-guided (default rule)"][0] == "6"
+    assert sum(float(v) for v in rows["Error-guided (default rule)"][1:7]) == pytest.approx(100, abs=0.2)
     # Where the time went: measured stages of every fit and test, in results.json, timing.json and the report.
     for name in ("none", "error_guided"):
         timing = runs[name]["timing"]
@@ -236,11 +235,26 @@ def test_several_seeds_print_mean_and_95_percent_confidence_interval():
 
 
 def test_strategies_are_none_then_the_selector_registry_each_with_a_row_title():
-    assert STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "error_guided")
-    assert ("none", *SELECTORS) == STRATEGIES and STRATEGIES is experiment.STRATEGIES
+    assert STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "paper")
+    assert STRATEGIES is experiment.STRATEGIES
     assert list(STRATEGY_TITLES) == list(VARIANTS)
-    assert [STRATEGY_TITLES[s] for s in STRATEGIES] == ["None-VTR", "Nature", "Random", "VIAT", "MVTN", "Ours"]
-    assert MAIN_STRATEGIES == ("none", "random", "error_guided", "paper")
+    assert [STRATEGY_TITLES[s] for s in STRATEGIES] == [
+        "None-VTR",
+        "Nature",
+        "Random (paper: angle-uniform)",
+        "VIAT",
+        "MVTN",
+        "Error-guided (paper's rule)",
+    ]
+    # the default report: what a user chooses between, each rule once
+    assert MAIN_STRATEGIES == ("none", "random", "random_area", "paper", "error_guided")
+    assert [STRATEGY_TITLES[s] for s in MAIN_STRATEGIES] == [
+        "None-VTR",
+        "Random (paper: angle-uniform)",
+        "Random (area-uniform)",
+        "Error-guided (paper's rule)",
+        "Error-guided (default rule)",
+    ]
 
 
 def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_directory():
@@ -286,16 +300,16 @@ def test_plan_adds_the_runs_the_ablations_need():
     no_pool = next(r for r in _plan(ReportConfig(ablations=["pool"])) if r.name == "error_guided_no_pool")
     assert no_pool.callback_kwargs == {"use_pool": False}
     assert [r.name for r in _plan(ReportConfig(strategies=["mvtn", "random"], ablations=[]))] == ["random", "mvtn"]
-    plan = _plan(ReportConfig(ablations=["k"], selector_kwargs={"error_guided": {"mode": "soft"}}))
+    plan = _plan(ReportConfig(ablations=["k"], selector_kwargs={"error_guided": {"spread": 0.25}}))
     kwargs = {r.name: r.selector_kwargs for r in plan}
-    assert kwargs["error_guided_k60"] == {"mode": "soft", "k": 60} and kwargs["error_guided"] == {"mode": "soft"}
+    assert kwargs["error_guided_k60"] == {"spread": 0.25, "k": 60} and kwargs["error_guided"] == {"spread": 0.25}
     # Variants run in the registry's order, each under its own name.
-    plan = _plan(ReportConfig(strategies=["visible_nms", "paper", "random_area", "none"]))
+    plan = _plan(ReportConfig(strategies=["error_guided", "paper", "random_area", "none"]))
     assert [(r.name, r.strategy) for r in plan] == [
         ("none", "none"),
         ("random_area", "random_area"),
         ("paper", "paper"),
-        ("visible_nms", "visible_nms"),
+        ("error_guided", "error_guided"),
     ]
 
 
@@ -335,8 +349,8 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
         "random",
         "viat",
         "mvtn",
-        "error_guided",
         "paper",
+        "error_guided",
         "error_guided_k15",
         "error_guided_k60",
         "error_guided_k90",
@@ -368,7 +382,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     config = ReportConfig(
         default_experiment(out=str(tmp_path / "r")),
         seeds=[0, 2],
-        strategies=[*STRATEGIES, "paper"],
+        strategies=[*STRATEGIES, "error_guided"],
         ablations=ABLATIONS,
         selector_kwargs=_OWN_PAPER_RUN,
     )
@@ -385,11 +399,11 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     titles = {
         "None-VTR": "none",
         "Nature": "nature",
-        "Random": "random",
+        "Random (paper: angle-uniform)": "random",
         "VIAT": "viat",
         "MVTN": "mvtn",
-        "Ours": "error_guided",
-        "Ours (paper rule)": "paper",
+        "Error-guided (paper's rule)": "paper",
+        "Error-guided (default rule)": "error_guided",
     }
     assert list(rows) == list(titles)
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in titles.items()}
@@ -402,15 +416,15 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     }
     assert rows == {t: [cell(r, v, "iou@0.4") for v in VIEW_SETS] for t, r in k_runs.items()}
     _, rows = tables["Ablation: viewpoint pool (%)"]
-    pool_runs = {"Ours (with pool)": "error_guided", "Ours (without pool)": "error_guided_no_pool"}
+    pool_runs = {"Default rule (with pool)": "error_guided", "Default rule (without pool)": "error_guided_no_pool"}
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in pool_runs.items()}
     _, rows = tables["Ablation: single-view input (%)"]
-    single_runs = {"None-VTR (1 view)": "single_view_none", "Ours (1 view)": "single_view_error_guided"}
+    single_runs = {"None-VTR (1 view)": "single_view_none", "Default rule (1 view)": "single_view_error_guided"}
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in single_runs.items()}
     # Per-seed differences are constant here (the seed term cancels): no spread, every seed agrees.
     _, rows = tables["Paired difference to Random (mIoU points)"]
     gap = (names.index("paper") - names.index("random")) * 7 / 2
-    assert rows["Ours (paper rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}], 2/2"] * 3
+    assert rows["Error-guided (paper's rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}], 2/2"] * 3
 
     with (tmp_path / "r" / "results.csv").open() as f:
         rows_csv = list(csv.DictReader(f))
@@ -432,7 +446,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
 
 
 #: A paper rule unlike the callback's default, so that the report fits it as a run of its own.
-_OWN_PAPER_RUN = {"paper": {"sigma": 4.0}}
+_OWN_PAPER_RUN = {"paper": {"spread": 0.25}}
 
 
 def _stub_runs(monkeypatch, tmp_path, iou: dict[str, dict[int, float]], views=None, timing=None):
@@ -495,17 +509,17 @@ def test_paired_differences_against_none_and_random_with_intervals_and_sign_agre
     assert header == ["Method", "Aligned", "Hemispherical", "Spherical"]
     assert rows == {
         "Random": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48], 3/3
-        "Ours": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97], 2/3
-        "Ours (paper rule)": ["+0.00 [+0.00, +0.00], 0/3"] * 3,
+        "Error-guided (default rule)": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97], 2/3
+        "Error-guided (paper's rule)": ["+0.00 [+0.00, +0.00], 0/3"] * 3,
     }
-    assert rows["Random"][0] == "+2.00 [-0.48, +4.48], 3/3"
+    assert rows["Random (paper: angle-uniform)"][0] == "+2.00 [-0.48, +4.48], 3/3"
     _, rows = tables["Paired difference to Random (mIoU points)"]
     assert rows == {
         "None-VTR": [expected([-1, -2, -3])] * 3,
-        "Ours": [expected([2, -3, -2])] * 3,
-        "Ours (paper rule)": [expected([-1, -2, -3])] * 3,
+        "Error-guided (default rule)": [expected([2, -3, -2])] * 3,
+        "Error-guided (paper's rule)": [expected([-1, -2, -3])] * 3,
     }
-    estimate = result["differences"]["random"]["Ours"]["spherical"]
+    estimate = result["differences"]["random"]["Error-guided (default rule)"]["spherical"]
     assert (estimate.n, estimate.agree) == (3, 2) and estimate.mean == pytest.approx(-0.01)
     assert not estimate.excludes_zero
 
@@ -554,47 +568,75 @@ def test_view_distribution_table_pools_every_seeds_generated_views(tmp_path, mon
     # "none" and "error_guided" generated nothing: no row.
     assert rows == {
         "Random": ["2", "50.0", "0.0", "0.0", "33.3", "16.7", "0.0", "50.0", "63.3"],
-        "Ours (paper rule)": ["1", "0.0", "0.0", "0.0", "66.7", "33.3", "0.0", "100.0", "120.0"],
+        "Error-guided (paper's rule)": ["1", "0.0", "0.0", "0.0", "66.7", "33.3", "0.0", "100.0", "120.0"],
     }
     assert result["views"]["Random"]["triplet_spread"] == pytest.approx((120 + 20 / 3) / 2)
     assert (tmp_path / "r" / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+#: A strategies file whose row repeats the shipped paper's rule under another title.
+_REPEATED_RULE = (
+    "paper_again:\n  title: Paper's rule again\n  description: the shipped paper row, repeated\n"
+    "  selector: error_guided\n  selector_kwargs: {score: paper, min_separation: null, temperature: null}\n"
+    "  callback_kwargs: {search_fraction: null, pool_refresh: false}\n"
+)
+_WITH_REPEAT = ["none", "random", "paper", "paper_again"]
+
+
+def _repeat_file(tmp_path) -> str:
+    path = tmp_path / "repeat.yaml"
+    path.write_text(_REPEATED_RULE)
+    return str(path)
+
+
 def test_strategies_resolving_to_the_same_arguments_are_fitted_once_and_shown_in_both_rows(tmp_path, monkeypatch):
-    """While the callback's default is the paper's rule, "error_guided" and "paper" are one run per seed."""
+    """A row of a strategies file that repeats a shipped rule is one run per seed, shown in both rows."""
     seeds = [0, 1]
-    iou = {name: {s: 0.40 + 0.01 * i + 0.001 * s for s in seeds} for i, name in enumerate(MAIN_STRATEGIES)}
+    iou = {name: {s: 0.40 + 0.01 * i + 0.001 * s for s in seeds} for i, name in enumerate(_WITH_REPEAT)}
     timing = {
         name: {s: {"fit": 100.0, "train_steps": 80.0, "test": 10.0} for s in seeds}
-        for name in ("none", "random", "error_guided")
+        for name in ("none", "random", "paper")
     }
     calls = []
     _stub_runs(monkeypatch, tmp_path, iou, timing=timing)
     stub = experiment.run_strategy
     monkeypatch.setattr(experiment, "run_strategy", lambda *a, **kw: calls.append(kw["run_name"]) or stub(*a, **kw))
-    result = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
-
-    assert calls == ["none", "random", "error_guided"] * 2  # no "paper" fit
-    assert result["runs"]["paper"] == result["runs"]["error_guided"]
-    _, rows = _parse_tables(result["markdown"])["Paired difference to Random (mIoU points)"]
-    assert rows["Ours (paper rule)"] == rows["Ours"] == ["+1.00 [+1.00, +1.00], 2/2"] * 3
-    assert (
-        "fitted once because their selector and callback arguments are identical: Ours (paper rule) = Ours"
-        in (result["markdown"])
+    rows_file = _repeat_file(tmp_path)
+    config = ReportConfig(
+        default_experiment(out=str(tmp_path / "r")), seeds=seeds, strategies=_WITH_REPEAT, strategies_file=rows_file
     )
+    result = run_report(config)
+
+    assert calls == ["none", "random", "paper"] * 2  # no "paper_again" fit
+    assert result["runs"]["paper_again"] == result["runs"]["paper"]
+    _, rows = _parse_tables(result["markdown"])["Paired difference to Random (mIoU points)"]
+    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+1.00 [+1.00, +1.00], 2/2"] * 3
+    assert (
+        "fitted once because their selector and callback arguments are identical: "
+        "Paper's rule again = Error-guided (paper's rule)"
+    ) in result["markdown"]
     split = result["time_split"]
     assert split["fine_tuning"]["total"] == 3 * 2 * 100.0  # three fits per seed, not four
     assert split["testing"]["total"] == 3 * 2 * 10.0
-    assert all(math.isnan(v) for v in split["per_run"]["paper"].values())
-    # a paper rule that differs from the default is a run of its own again
+    assert all(math.isnan(v) for v in split["per_run"]["paper_again"].values())
+    # other arguments make it a run of its own again
     calls.clear()
-    run_report(ReportConfig(default_experiment(out=str(tmp_path / "r2")), seeds=[0], selector_kwargs=_OWN_PAPER_RUN))
-    assert calls == ["none", "random", "error_guided", "paper"]
+    own = {"paper_again": {"spread": 0.25}}
+    run_report(
+        ReportConfig(
+            default_experiment(out=str(tmp_path / "r2")),
+            seeds=[0],
+            strategies=_WITH_REPEAT,
+            strategies_file=rows_file,
+            selector_kwargs=own,
+        )
+    )
+    assert calls == _WITH_REPEAT
 
 
 def test_resolved_strategy_fills_in_every_default():
     resolved = experiment.resolved_strategy("paper")
-    assert resolved == experiment.resolved_strategy("error_guided")
+    assert resolved != experiment.resolved_strategy("error_guided")
     assert resolved["selector_kwargs"]["k"] == 30 and resolved["callback_kwargs"]["use_pool"] is True
     assert resolved["callback_kwargs"]["search_fraction"] == resolved["callback_kwargs"]["fraction"] == 0.05
     assert experiment.resolved_strategy("error_guided", {"k": 15}) != resolved
@@ -648,12 +690,12 @@ def test_time_split_sums_the_measured_stages(tmp_path, monkeypatch):
 def test_validation_tables_pair_the_validation_results_and_merged_runs_are_validated_once(tmp_path, monkeypatch):
     seeds = [0, 1, 2]
     test_iou = {"none": {0: 0.4, 1: 0.5, 2: 0.45}, "random": {0: 0.5, 1: 0.6, 2: 0.55}}
-    test_iou["error_guided"] = test_iou["paper"] = {0: 0.45, 1: 0.55, 2: 0.5}
+    test_iou["paper"] = test_iou["paper_again"] = {0: 0.45, 1: 0.55, 2: 0.5}
     _stub_runs(monkeypatch, tmp_path, test_iou)
     # On the validation objects: Random +1, +2, +3 points over none; Ours -1, 0, +1 over none.
     val_iou = {"none": {0: 0.30, 1: 0.40, 2: 0.35}}
     val_iou["random"] = {s: val_iou["none"][s] + d for s, d in zip(seeds, (0.01, 0.02, 0.03))}
-    val_iou["error_guided"] = {s: val_iou["none"][s] + d for s, d in zip(seeds, (-0.01, 0.0, 0.01))}
+    val_iou["paper"] = {s: val_iou["none"][s] + d for s, d in zip(seeds, (-0.01, 0.0, 0.01))}
     validated = []
 
     def validate_run(config, run_dir, repeats):
@@ -661,24 +703,28 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
         return {v: {"iou@0.4": val_iou[run_dir.name][config.seed]} for v in VIEW_SETS}
 
     monkeypatch.setattr(experiment, "validate_run", validate_run)
-    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, validation_repeats=12)
+    rows_file = _repeat_file(tmp_path)
+    chosen = {"strategies": _WITH_REPEAT, "strategies_file": rows_file}
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, validation_repeats=12, **chosen)
     result = run_report(config)
-    # error_guided and paper are one run while the default is the paper's rule: validated once per seed
-    assert sorted(validated) == sorted((r, s, 12) for r in ("none", "random", "error_guided") for s in seeds)
+    # paper and paper_again are one run: validated once per seed
+    assert sorted(validated) == sorted((r, s, 12) for r in ("none", "random", "paper") for s in seeds)
     tables = _parse_tables(result["markdown"])
     _, rows = tables["Validation split: paired difference to None-VTR (mIoU points)"]
-    assert rows["Random"] == ["+2.00 [-0.48, +4.48], 3/3"] * 3
-    assert rows["Ours"] == rows["Ours (paper rule)"] == ["+0.00 [-2.48, +2.48], 0/3"] * 3
+    assert rows["Random (paper: angle-uniform)"] == ["+2.00 [-0.48, +4.48], 3/3"] * 3
+    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+0.00 [-2.48, +2.48], 0/3"] * 3
     _, rows = tables["Validation split: paired difference to Random (mIoU points)"]
-    assert rows["Ours"] == ["-2.00 [-2.00, -2.00], 3/3"] * 3
+    assert rows["Error-guided (paper's rule)"] == ["-2.00 [-2.00, -2.00], 3/3"] * 3
     # the test-split tables keep the test results (Ours +5 points over none on every seed there)
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
-    assert rows["Ours"] == ["+5.00 [+5.00, +5.00], 3/3"] * 3
+    assert rows["Error-guided (paper's rule)"] == ["+5.00 [+5.00, +5.00], 3/3"] * 3
     assert "--validation-repeats 12" in result["markdown"]
-    assert result["validation_differences"]["random"]["Ours"]["spherical"].mean == pytest.approx(-0.02)
+    assert result["validation_differences"]["random"]["Error-guided (paper's rule)"]["spherical"].mean == pytest.approx(
+        -0.02
+    )
 
     validated.clear()
-    plain = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds))
+    plain = run_report(ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, **chosen))
     assert validated == [] and "Validation split" not in plain["markdown"]
     with pytest.raises(ValueError, match=r"`validation_repeats` must be an int >= 1, got 0"):
         ReportConfig(default_experiment(out=str(tmp_path / "r")), validation_repeats=0)

@@ -16,15 +16,27 @@ from lightning_vtr.experiments.strategies import (
 
 def test_the_shipped_file_is_the_registry_and_no_row_depends_on_a_dataset_size():
     assert STRATEGIES_FILE.name == "strategies.yaml" and STRATEGIES_FILE.is_file()
-    assert load_variants() == VARIANTS and len(VARIANTS) == 29
+    assert load_variants() == VARIANTS
     rows = yaml.safe_load(STRATEGIES_FILE.read_text())
     assert list(rows) == list(VARIANTS)
+    # the paper's Table 1 rows, area-uniform Random and the package's default rule, nothing else
+    assert list(VARIANTS) == ["none", "nature", "random", "random_area", "viat", "mvtn", "paper", "error_guided"]
     for name, variant in VARIANTS.items():
         assert variant.title and variant.description, name
         assert "max_samples" not in variant.callback_kwargs, name  # a count would fit one dataset only
-    fresh = [name for name, v in VARIANTS.items() if v.max_samples_fraction is not None]
-    assert fresh == ["random_fresh", "random_area_fresh", "visible_tau3_search_fresh", "visible_tau10_search_fresh"]
-    assert all(VARIANTS[name].max_samples_fraction == 0.2 for name in fresh)
+        assert variant.max_samples_fraction is None, name
+
+
+def test_the_shipped_rows_are_distinct_rules_and_their_titles_say_which():
+    from lightning_vtr.experiments.training import resolved_strategy
+
+    resolved = [resolved_strategy(name) for name in VARIANTS]
+    assert all(resolved.count(r) == 1 for r in resolved)  # no two rows train one rule
+    titles = {name: v.title for name, v in VARIANTS.items()}
+    assert titles["random"] == "Random (paper: angle-uniform)" and titles["random_area"] == "Random (area-uniform)"
+    assert titles["paper"] == "Error-guided (paper's rule)"
+    assert titles["error_guided"] == "Error-guided (default rule)"
+    assert not any("Ours" in title for title in titles.values())
 
 
 def _write(tmp_path, text: str):
@@ -76,7 +88,7 @@ def test_a_valid_file_gives_its_rows_in_order(tmp_path):
 
 
 #: ``resolved_strategy("paper")`` before the callback's default became the tempered rule, written out: the
-#: report's `paper` and `error_guided` rows must keep training exactly this.
+#: report's `paper` row must keep training exactly this.
 PAPER_RESOLVED = {
     "selector": "error_guided",
     "selector_kwargs": {
@@ -121,14 +133,13 @@ def _settings(callback) -> dict:
     }
 
 
-@pytest.mark.parametrize("name", ["paper", "error_guided"])
-def test_the_paper_rows_resolve_to_what_they_did_before_the_default_changed(name):
+def test_the_paper_row_resolves_to_what_it_did_before_the_default_changed():
     from lightning_vtr.experiments.training import resolved_strategy
 
-    assert resolved_strategy(name) == PAPER_RESOLVED
+    assert resolved_strategy("paper") == PAPER_RESOLVED
 
 
-def test_the_paper_rows_build_the_papers_callback_and_the_default_is_visible_tau10_search():
+def test_the_paper_row_builds_the_papers_callback_and_error_guided_the_default():
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.experiments.config import ExperimentConfig
     from lightning_vtr.experiments.training import make_strategy
@@ -137,8 +148,29 @@ def test_the_paper_rows_build_the_papers_callback_and_the_default_is_visible_tau
     paper = _settings(ErrorGuidedViewAugmentation.paper(fraction=0.05, seed=2))
     assert paper["selector"] == ("ErrorGuidedSelector", "paper", None, None)
     assert paper["search"] == (0.05, 0.05, "random", 1) and paper["pool"] == (None, True, False)
-    assert _settings(make_strategy("paper", config)) == _settings(make_strategy("error_guided", config)) == paper
+    assert _settings(make_strategy("paper", config)) == paper
     default = _settings(ErrorGuidedViewAugmentation(fraction=0.05, seed=2))
     assert default["selector"] == ("ErrorGuidedSelector", "visible", 30.0, 10.0)
     assert default["search"] == (0.05, 0.35, "random", 1) and default["pool"] == (None, True, True)
-    assert _settings(make_strategy("visible_tau10_search", config)) == default
+    assert _settings(make_strategy("error_guided", config)) == default
+
+
+def test_a_selector_argument_given_as_class_path_is_built_and_a_bad_one_refused(tmp_path):
+    from lightning_vtr.experiments.config import ExperimentConfig
+    from lightning_vtr.experiments.training import make_strategy, resolved_strategy
+    from lightning_vtr.selection import ReleasedScore
+
+    score = "{class_path: lightning_vtr.selection.ReleasedScore, init_args: {eps: 0.1}}"
+    path = _write(tmp_path, f"soft:\n{ROW}  selector: error_guided\n  selector_kwargs: {{score: {score}}}\n")
+    variants = load_variants(path)
+    callback = make_strategy("soft", ExperimentConfig(), variants=variants)
+    assert callback.selector.score_options == ReleasedScore(eps=0.1)
+    assert (callback.selector.min_separation, callback.selector.temperature) == (30.0, 10.0)
+    # the resolved form keeps the mapping, so it compares and reads back from results.json
+    assert resolved_strategy("soft", variants=variants)["selector_kwargs"]["score"]["init_args"] == {"eps": 0.1}
+    bad = _write(
+        tmp_path, f"soft:\n{ROW}  selector: error_guided\n  selector_kwargs: {{score: {{class_path: no.Such}}}}\n"
+    )
+    with pytest.raises(StrategyFileError, match=r"row 'soft', selector_kwargs, score must be an importable class path .*'no.Such'") as error:
+        load_variants(bad)
+    assert str(bad) in str(error.value)

@@ -179,7 +179,7 @@ def test_make_strategy_builds_every_registered_selector():
     from lightning_vtr.selection import SELECTORS
 
     config = ExperimentConfig(fraction=0.2, seed=3)
-    assert ("none", *SELECTORS) == experiment.STRATEGIES
+    assert experiment.STRATEGIES == ("none", "nature", "random", "viat", "mvtn", "paper")
     assert experiment.make_strategy("none", config) is None
     for name, cls in SELECTORS.items():
         callback = experiment.make_strategy(name, config)
@@ -187,7 +187,7 @@ def test_make_strategy_builds_every_registered_selector():
         assert (callback.fraction, callback.seed) == (0.2, 3)
     with pytest.raises(
         ValueError,
-        match="`name` must be one of 'none', 'nature', .*'visible_tau_search', 'visible_tau3_search', .*got 'ours'",
+        match="`name` must be one of 'none', 'nature', 'random', 'random_area', .*'paper', 'error_guided', got 'ours'",
     ):
         experiment.make_strategy("ours", config)
 
@@ -197,7 +197,7 @@ def test_make_strategy_passes_selector_and_callback_arguments():
 
     config = ExperimentConfig(fraction=0.2, seed=3)
     callback = experiment.make_strategy(
-        "error_guided", config, selector_kwargs={"k": 15}, callback_kwargs={"use_pool": False, "fraction": 0.5}
+        "paper", config, selector_kwargs={"k": 15}, callback_kwargs={"use_pool": False, "fraction": 0.5}
     )
     assert isinstance(callback.selector, ErrorGuidedSelector)
     assert callback.selector.k == 15 and callback.selector.sigma == 2.5  # K / 6 degrees
@@ -246,15 +246,13 @@ def _callback_settings(callback) -> dict:
 def test_variants_registry_holds_the_table_1_strategies_and_the_named_variants():
     assert list(experiment.VARIANTS)[:2] == ["none", "nature"]
     assert set(experiment.STRATEGIES) <= set(experiment.VARIANTS)
-    assert {"random_area", "paper", "released", "visible", "visible_nms", "visible_tau", "visible_nms_search"} <= set(
-        experiment.VARIANTS
-    )
+    assert set(experiment.VARIANTS) - set(experiment.STRATEGIES) == {"random_area", "error_guided"}
     titles = [v.title for v in experiment.VARIANTS.values()]
     assert all(titles) and len(set(titles)) == len(titles)
     assert experiment.VARIANTS["none"].selector is None
     # A registry entry cannot be changed through its kwargs.
     with pytest.raises(TypeError):
-        experiment.VARIANTS["visible_nms"].selector_kwargs["min_separation"] = 0.0
+        experiment.VARIANTS["paper"].selector_kwargs["min_separation"] = 0.0
     with pytest.raises(ValueError, match="selector: unknown selector 'ours'"):
         experiment.StrategyVariant("ours")
 
@@ -271,9 +269,11 @@ def test_variants_build_their_selector_and_callback_settings():
     assert build("none") is None
     assert isinstance(build("random").selector, RandomSelector) and build("random").selector.mode == "angle"
     assert build("random_area").selector.mode == "area" and build("random_area").pool is None
-    # "error_guided" is the paper's Table 1 row: the paper's whole rule
+    # "paper" is the paper's Table 1 row: the paper's whole rule; "error_guided" the callback's default
     paper_rule = ErrorGuidedViewAugmentation.paper(fraction=0.1, seed=4)
-    assert _callback_settings(build("error_guided")) == _callback_settings(paper_rule)
+    assert _callback_settings(build("paper")) == _callback_settings(paper_rule)
+    default = ErrorGuidedViewAugmentation(fraction=0.1, seed=4)
+    assert _callback_settings(build("error_guided")) == _callback_settings(default)
     paper = build("paper")
     assert (paper.selector.score, paper.selector.min_separation, paper.selector.temperature) == ("paper", None, None)
     assert _callback_settings(paper) | {"selector": None} == {
@@ -285,40 +285,10 @@ def test_variants_build_their_selector_and_callback_settings():
         "pool_refresh": False,
         "select_at_start": True,
     }
-    released = build("released")
-    options = released.selector.score_options
-    assert (released.selector.score, options.mask, options.reduction) == ("released", "gt", "mean")
-    assert (released.pool.refresh, released.pool.prefer_others, released.search_fraction) == (True, False, 0.35)
-    assert build("visible").selector.score == "visible" and build("visible").selector.min_separation is None
-    nms = build("visible_nms").selector
-    assert (nms.score, nms.min_separation, nms.temperature) == ("visible", 30.0, None)
-    tau = build("visible_tau").selector
-    assert (tau.score, tau.min_separation, tau.temperature) == ("visible", 30.0, 1.0)
-    search = build("visible_nms_search")
-    assert (search.selector.score, search.selector.min_separation) == ("visible", 30.0)
-    assert (search.search_fraction, search.pool.refresh, search.fraction) == (0.35, True, 0.1)
     # The caller's kwargs go over the variant's.
-    merged = build("visible_nms_search", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
+    merged = build("error_guided", selector_kwargs={"k": 15}, callback_kwargs={"search_fraction": 0.5})
     assert (merged.selector.k, merged.selector.score, merged.selector.min_separation) == (15, "visible", 30.0)
     assert (merged.search_fraction, merged.pool.refresh) == (0.5, True)
-    # The input-side rows query the model through a context and train each object on its own selection.
-    for name, temperature in (("input_nms", None), ("input_tau", 1.0)):
-        row = build(name)
-        selector = row.selector
-        assert (selector.score, selector.min_separation, selector.temperature) == ("input", 30.0, temperature)
-        assert selector.needs_context and row.pool is None and row.fraction == 0.1
-    # The fresh variants fix their own budget (20 %, latest selection only) over the config's 10 %.
-    for name, mode in (("random_fresh", "angle"), ("random_area_fresh", "area")):
-        fresh = build(name)
-        assert (fresh.selector.mode, fresh.fraction, fresh.max_samples, fresh.pool) == (mode, 0.2, 34, None)
-    for name, temperature in (("visible_tau3_search_fresh", 3.0), ("visible_tau10_search_fresh", 10.0)):
-        fresh = build(name)
-        assert (fresh.selector.score, fresh.selector.min_separation, fresh.selector.temperature) == (
-            "visible",
-            30.0,
-            temperature,
-        )
-        assert (fresh.fraction, fresh.max_samples, fresh.search_fraction, fresh.pool.refresh) == (0.2, 34, 0.35, True)
 
 
 class _Sleepy(L.Callback):
@@ -396,22 +366,3 @@ def test_validate_run_tests_the_final_weights_on_the_validation_objects_and_cach
     assert experiment.validate_run(config, run_dir, 2) == results and tested == []  # cached
     experiment.validate_run(config, run_dir, 1)  # another repeat count is recomputed
     assert tested == [("val", [3, 3, 3])]
-
-
-def test_the_fresh_rows_cap_scales_with_the_dataset_and_is_34_on_the_embedded_one(tiny_dataset):
-    from lightning_vtr.data.format import load_metadata
-
-    # the embedded dataset: 10 categories x 17 training objects; 20 % of them is the former fixed cap of 34
-    assert experiment.training_objects(ExperimentConfig()) == 170
-    assert experiment.VARIANTS["random_fresh"].max_samples(170) == 34
-    assert experiment.make_strategy("random_fresh", ExperimentConfig()).max_samples == 34
-    # another dataset, another cap: 20 % of its own training objects
-    tiny = ExperimentConfig(data=str(tiny_dataset))
-    count = sum(info["split"] == "train" for info in load_metadata(tiny_dataset)["objects"].values())
-    assert experiment.training_objects(tiny) == count == 21
-    assert experiment.make_strategy("visible_tau3_search_fresh", tiny).max_samples == round(0.2 * 21) == 4
-    # a given count or an explicit max_samples wins; rows without a cap have none
-    assert experiment.make_strategy("random_fresh", tiny, train_objects=1000).max_samples == 200
-    assert experiment.make_strategy("random_fresh", tiny, callback_kwargs={"max_samples": 7}).max_samples == 7
-    assert experiment.make_strategy("random", tiny).max_samples is None
-    assert experiment.resolved_strategy("random_fresh")["callback_kwargs"]["max_samples_fraction"] == 0.2

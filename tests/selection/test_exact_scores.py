@@ -176,7 +176,7 @@ def test_scores_do_not_depend_on_the_chunking(monkeypatch):
 def test_soft_error_scores_equal_the_two_step_form_exactly(mask, reduction, dtype):
     # The selector's soft scores write the error straight into the summed rows; they must equal scoring the
     # error volume, bit for bit, also with eps, a NaN and half precision (which takes the two-step form).
-    from lightning_vtr.selection.projection import _soft_error_scores
+    from lightning_vtr.selection.projection import soft_error_scores
 
     predicted, target = random_objects(9, seed=21)
     predicted, target = predicted.to(dtype), target.to(dtype)
@@ -185,6 +185,6 @@ def test_soft_error_scores_equal_the_two_step_form_exactly(mask, reduction, dtyp
     for eps in (0.0, 0.25):
         errors = error_volume(predicted, target, mode="soft", mask=mask)
         expected = projection_scores(errors, views, reduction=reduction, eps=eps, binary=False)
-        got = _soft_error_scores(predicted, target, views, mask=mask, reduction=reduction, eps=eps)
+        got = soft_error_scores(predicted, target, views, mask=mask, reduction=reduction, eps=eps)
         assert got.dtype == expected.dtype
         assert torch.equal(got, expected)

@@ -1,6 +1,5 @@
-"""The predictions selectors make or query internally are range-checked like the callback's own: VIAT's (and
-the input score's) model queries at candidate views must be probabilities; MVTN's network must predict finite
-views."""
+"""The predictions selectors make or query internally are range-checked like the callback's own: VIAT's model
+queries at candidate views must be probabilities; MVTN's network must predict finite views."""
 
 from __future__ import annotations
 
@@ -11,7 +10,6 @@ import pytest
 import torch
 from helpers import ViewpointSynthesizer, one_thread, viewpoint_transform
 
-from lightning_vtr.selection import ErrorGuidedSelector
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.selection.mvtn import MVTNSelector
 from lightning_vtr.selection.viat import VIATSelector
@@ -49,13 +47,6 @@ def test_viat_refuses_a_model_that_returns_logits_at_its_candidate_views():
     volumes = torch.zeros(2, R, R, R)
     with pytest.raises(ValueError, match=_MESSAGE):
         selector.select(volumes, volumes, ["chair", "chair"], torch.Generator().manual_seed(0), _context())
-
-
-def test_the_input_score_refuses_a_model_that_returns_logits():
-    selector = ErrorGuidedSelector.paper(k=30, score="input")
-    volumes = torch.zeros(2, R, R, R)
-    with pytest.raises(ValueError, match=_MESSAGE):
-        selector.score_views(volumes, volumes, _context())
 
 
 def test_mvtn_refuses_non_finite_views_of_a_diverged_network(monkeypatch):

@@ -395,10 +395,10 @@ def test_culling_the_occluded_voxels_changes_no_first_hit_on_solids(device):
 def test_every_interior_voxel_is_culled_for_the_candidate_views():
     # For the selector's candidate views, each octant's voxels with all 7 neighbours towards the cameras
     # inside the grid are occludable: a solid's interior never reaches the scatter.
-    from lightning_vtr.selection.first_hit import _projection_table
+    from lightning_vtr.selection.first_hit import projection_table
 
     res = 12
-    table = _projection_table(res, candidate_viewpoints(30), res, math.sqrt(3) / 2, torch.device("cpu"))
+    table = projection_table(res, candidate_viewpoints(30), res, math.sqrt(3) / 2, torch.device("cpu"))
     assert len(table.groups) == 8 and sorted(len(g.views) for g in table.groups) == [9] * 8
     assert torch.equal(torch.sort(torch.cat([g.views for g in table.groups])).values, torch.arange(72))
     ijk = torch.stack(torch.meshgrid(*[torch.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)

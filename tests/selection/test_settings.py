@@ -12,12 +12,12 @@ import torch
 from lightning_vtr.selection import (
     SCORES,
     ErrorGuidedSelector,
-    MapScore,
     MVTNSelector,
     NatureSelector,
     RandomSelector,
     ReleasedScore,
     VIATSelector,
+    VisibleScore,
 )
 
 # one selector per class with settings other than the defaults
@@ -29,7 +29,7 @@ NON_DEFAULT = [
     ErrorGuidedSelector(
         score=ReleasedScore(eps=0.1), k=60, num_views=2, threshold=0.3, min_separation=None, spread=0.1, relative=True
     ),
-    ErrorGuidedSelector(score=MapScore(objects=3, momentum=0.5), temperature=1.0, fallback="angle"),
+    ErrorGuidedSelector(score=VisibleScore(mode="soft"), temperature=1.0, fallback="angle"),
 ]
 
 

@@ -8,7 +8,8 @@ import sys
 import torch
 from matplotlib.figure import Figure
 
-from lightning_vtr.selection import ViewpointPool, plot_error_projections, plot_pool_distribution
+from lightning_vtr.selection import ViewpointPool
+from research.plots import plot_error_projections, plot_pool_distribution
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

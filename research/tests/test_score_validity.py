@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lightning_vtr.evaluation.score_validity import (
+from research.score_validity import (
     category_mean_loss,
     chance_hit_rate,
     format_validity_table,

@@ -1,4 +1,4 @@
-"""``ErrorGuidedSelector.paper(score="map")``: bins chosen from the category's measured failure map.
+"""``ErrorGuidedSelector.paper(score=MapScore())``: bins chosen from the category's measured failure map.
 
 A fake synthesizer writes each viewpoint into its image and a fake model reconstructs an object worse the closer
 the first view of its set is to that object's bad viewpoint, with a loss (1 - IoU) known in closed form; with
@@ -23,9 +23,10 @@ from helpers import (
 )
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector, MapScore
+from lightning_vtr.selection import ErrorGuidedSelector
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.synthesis.base import SynthesisRequest
+from research.scores import MapScore
 
 _one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 
@@ -133,7 +134,7 @@ def test_map_objects_caps_the_measured_objects_and_momentum_blends_the_calls():
 def test_hard_selection_sends_every_object_of_a_category_to_its_worst_bins():
     bad = torch.tensor([[70.0, -40.0], [70.0, -40.0], [-140.0, 70.0], [-140.0, 70.0]])
     categories = ["chair", "chair", "table", "table"]
-    selector = ErrorGuidedSelector.paper(k=30, score="map", spread=0.0, min_separation=30.0)
+    selector = ErrorGuidedSelector.paper(k=30, score=MapScore(), spread=0.0, min_separation=30.0)
     context, _ = _context(bad, 30, categories)
     full = torch.ones(4, R, R, R)
     views = selector.select(full, full, categories, torch.Generator().manual_seed(0), context)
@@ -151,7 +152,7 @@ def test_hard_selection_sends_every_object_of_a_category_to_its_worst_bins():
 
 def test_a_flat_map_prefers_no_bin_and_falls_back_to_uniform_views():
     bad = torch.tensor([[0.0, 0.0]])
-    selector = ErrorGuidedSelector.paper(k=30, score="map", spread=0.0)
+    selector = ErrorGuidedSelector.paper(k=30, score=MapScore(), spread=0.0)
     context, model = _context(bad, 30, ["chair"])
     model.predict_voxels = lambda images: torch.ones(len(images), R, R, R)  # never fails: a flat map
     full = torch.ones(1, R, R, R)
@@ -161,14 +162,14 @@ def test_a_flat_map_prefers_no_bin_and_falls_back_to_uniform_views():
 
 
 def test_the_maps_survive_a_state_round_trip_and_a_wrong_grid_is_refused():
-    selector = ErrorGuidedSelector.paper(k=30, score="map")
+    selector = ErrorGuidedSelector.paper(k=30, score=MapScore())
     selector.score_options.category_maps = {"chair": torch.linspace(0, 1, 72)}
-    restored = ErrorGuidedSelector.paper(k=30, score="map")
+    restored = ErrorGuidedSelector.paper(k=30, score=MapScore())
     restored.load_state_dict(selector.state_dict())
     assert torch.equal(restored.score_options.category_maps["chair"], selector.score_options.category_maps["chair"])
     assert ErrorGuidedSelector.paper(score="visible").state_dict() == {}
     with pytest.raises(ValueError, match=r"'chair' has shape \(72,\); this selector \(k=90\) has 8 bins"):
-        ErrorGuidedSelector.paper(k=90, score="map").load_state_dict(selector.state_dict())
+        ErrorGuidedSelector.paper(k=90, score=MapScore()).load_state_dict(selector.state_dict())
 
 
 @pytest.mark.parametrize(
@@ -183,11 +184,11 @@ def test_bad_map_settings_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         MapScore(**kwargs)
     with pytest.raises(ValueError, match="relative=True` does not apply to score='map'"):
-        ErrorGuidedSelector.paper(score="map", relative=True)
+        ErrorGuidedSelector.paper(score=MapScore(), relative=True)
 
 
 def test_the_map_score_needs_a_context_and_whole_categories():
-    selector = ErrorGuidedSelector.paper(score="map")
+    selector = ErrorGuidedSelector.paper(score=MapScore())
     assert selector.needs_context and selector.batched
     full = torch.ones(1, R, R, R)
     with pytest.raises(ValueError, match="needs a SelectionContext"):
@@ -203,7 +204,7 @@ def test_the_callback_measures_the_category_maps_and_sends_each_category_to_its_
     L.seed_everything(0, verbose=False)
     dm = make_datamodule(tiny_dataset, tmp_path)
     selector = ErrorGuidedSelector.paper(k=90, score=MapScore(objects=1), spread=0.0)
-    callback = make_callback(selector=selector, fraction=0.3, use_pool=False, select_at_start=True)
+    callback = make_callback(selector=selector, fraction=0.3, pool=None, select_at_start=True)
     make_trainer(tmp_path, 1, [callback]).fit(TinyUserModel(), datamodule=dm)
 
     samples = dm.generated_samples

@@ -1,4 +1,4 @@
-"""``ErrorGuidedSelector.paper(score="input")``: every candidate view is rendered and scored by the model's loss on it.
+"""``ErrorGuidedSelector.paper(score=InputScore())``: every candidate view is rendered and scored by the model's loss on it.
 
 A fake synthesizer writes each viewpoint into its image and a fake model fails in proportion to how close its
 one input view is to a known bad viewpoint, so the right scores and bins are known in closed form.
@@ -7,6 +7,7 @@ one input view is to a known bad viewpoint, so the right scores and bins are kno
 from __future__ import annotations
 
 import copy
+import re
 
 import lightning as L
 import numpy as np
@@ -16,6 +17,7 @@ from helpers import (
     TinyUserModel,
     ViewpointSynthesizer,
     decode_viewpoints,
+    generated_contents,
     make_callback,
     make_datamodule,
     make_trainer,
@@ -24,10 +26,11 @@ from helpers import (
 )
 
 from lightning_vtr.geometry import angular_distance, candidate_viewpoints
-from lightning_vtr.selection import ErrorGuidedSelector, InputScore
+from lightning_vtr.selection import ErrorGuidedSelector
 from lightning_vtr.selection.base import SelectionContext
 from lightning_vtr.selection.diversity import bin_solid_angles
 from lightning_vtr.synthesis.base import SynthesisRequest
+from research.scores import InputScore
 
 _one_thread = pytest.fixture(autouse=True, name="_one_thread")(one_thread)
 
@@ -78,7 +81,7 @@ def _expected_scores(k: int) -> torch.Tensor:
 
 
 def test_input_score_is_the_models_loss_given_each_bin_centre_alone():
-    selector = ErrorGuidedSelector.paper(k=30, score="input")
+    selector = ErrorGuidedSelector.paper(k=30, score=InputScore())
     context, model = _context(selector)
     volumes = torch.zeros(2, R, R, R)
     scores = selector.score_views(volumes, volumes, context)
@@ -103,7 +106,7 @@ def test_model_batch_size_chunks_the_predictions_without_changing_the_scores():
 
 
 def test_hard_selection_with_suppression_takes_the_worst_view_first_and_keeps_the_others_apart():
-    selector = ErrorGuidedSelector.paper(k=30, score="input", min_separation=30.0)
+    selector = ErrorGuidedSelector.paper(k=30, score=InputScore(), min_separation=30.0)
     context, _ = _context(selector)
     volumes = torch.zeros(2, R, R, R)
     views = selector.select(volumes, volumes, ["chair", "chair"], torch.Generator().manual_seed(0), context)
@@ -121,7 +124,7 @@ def test_hard_selection_with_suppression_takes_the_worst_view_first_and_keeps_th
 
 
 def test_temperature_sampling_prefers_the_bad_views_in_proportion():
-    selector = ErrorGuidedSelector.paper(k=30, score="input", temperature=1.0, num_views=1)
+    selector = ErrorGuidedSelector.paper(k=30, score=InputScore(), temperature=1.0, num_views=1)
     volumes = torch.zeros(2, R, R, R)
     first = []
     for seed in range(300):
@@ -140,7 +143,7 @@ def test_temperature_sampling_prefers_the_bad_views_in_proportion():
 
 
 def test_input_score_needs_a_context_and_takes_only_its_own_options():
-    selector = ErrorGuidedSelector.paper(score="input")
+    selector = ErrorGuidedSelector.paper(score=InputScore())
     assert selector.needs_context and not ErrorGuidedSelector.paper(score="visible").needs_context
     volumes = torch.zeros(1, R, R, R)
     with pytest.raises(ValueError, match="score='input'.*SelectionContext"):
@@ -162,8 +165,8 @@ def test_the_callback_scores_input_views_with_the_model_it_starts_from(tiny_data
     dm = make_datamodule(tiny_dataset, tmp_path)
     model = TinyUserModel()
     initial = copy.deepcopy(model)
-    selector = ErrorGuidedSelector.paper(k=90, score="input")
-    callback = make_callback(selector=selector, fraction=0.15, use_pool=False)
+    selector = ErrorGuidedSelector.paper(k=90, score=InputScore())
+    callback = make_callback(selector=selector, fraction=0.15, pool=None)
     make_trainer(tmp_path, 1, [callback]).fit(model, datamodule=dm)
 
     samples = dm.generated_samples
@@ -185,3 +188,45 @@ def test_the_callback_scores_input_views_with_the_model_it_starts_from(tiny_data
         views = torch.as_tensor(np.asarray(sample["viewpoints"]), dtype=torch.float64)
         nearest = angular_distance(views[:, None], centres[None]).argmin(1)
         assert set(nearest.tolist()) == best, (sample["object_id"], scores.tolist(), views.tolist())
+
+
+class _LogitModel:
+    """Returns logits (values up to 3) instead of probabilities."""
+
+    def predict_voxels(self, images: torch.Tensor) -> torch.Tensor:
+        return torch.linspace(-3.0, 3.0, R**3).reshape(1, R, R, R).expand(len(images), -1, -1, -1)
+
+
+def test_the_input_score_refuses_a_model_that_returns_logits():
+    requests = [
+        SynthesisRequest(f"obj{b}", "chair", np.zeros((0, 2, 2, 4), np.uint8), torch.zeros(0, 2), torch.zeros(0, 2))
+        for b in range(2)
+    ]
+    loss = lambda pred, target: (pred - target).abs().mean(dim=(1, 2, 3))  # noqa: E731
+    context = SelectionContext(
+        _LogitModel(), ViewpointSynthesizer(), requests, viewpoint_transform, loss, torch.device("cpu")
+    )
+    selector = ErrorGuidedSelector.paper(k=30, score=InputScore())
+    volumes = torch.zeros(2, R, R, R)
+    message = re.escape("`predict_voxels` must return probabilities in [0, 1], got values in [-3, 3] (0 non-finite of ")
+    with pytest.raises(ValueError, match=message + r"\d+" + re.escape("); at the selector's candidate views")):
+        selector.score_views(volumes, volumes, context)
+
+
+def _fit(root, tmp_path, epochs, ckpt=None):
+    L.seed_everything(0, verbose=False)
+    dm = make_datamodule(root, tmp_path)
+    checkpoint = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+    # renders every candidate view and queries the model: 8 bins at K = 90 keep it quick
+    callback = make_callback(fraction=0.15, selector=ErrorGuidedSelector(k=90, score=InputScore()))
+    make_trainer(tmp_path, epochs, [callback, checkpoint]).fit(TinyUserModel(), datamodule=dm, ckpt_path=ckpt)
+    return dm
+
+
+@pytest.mark.slow
+def test_a_resumed_run_generates_exactly_what_an_uninterrupted_run_does(tiny_dataset, tmp_path):
+    full = _fit(tiny_dataset, tmp_path / "full", 3)
+    _fit(tiny_dataset, tmp_path / "part", 1)
+    resumed = _fit(tiny_dataset, tmp_path / "part", 3, ckpt=str(tmp_path / "part" / "ckpt" / "last.ckpt"))
+    assert generated_contents(resumed) == generated_contents(full)
+    assert [s["epoch"] for s in full.generated_samples] == [-1] * 3 + [0] * 3 + [1] * 3

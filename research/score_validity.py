@@ -1,9 +1,9 @@
-"""Does a view score point at the views where the model actually fails? Pure statistics on ``(objects, bins)``.
+"""The score-validity study: does a view score point at the views where the model actually fails?
 
-A selection score (e.g. :class:`~lightning_vtr.selection.error_guided.ErrorGuidedSelector`'s ``paper`` score)
-ranks every bin of the viewpoint grid per object; the robustness map
-(:func:`~lightning_vtr.evaluation.robustness.robustness_map`) measures the model's true loss ``1 - IoU`` there.
-Two measures of agreement, both per object and then summarised over objects:
+For each object, every score :class:`lightning_vtr.selection.ErrorGuidedSelector` can select with (``paper``,
+``released``, ``visible`` and the research score ``input``) rates every bin of the viewpoint grid
+(:func:`selection_scores`); the robustness map (:func:`lightning_vtr.evaluation.robustness_map`) measures the
+model's true loss ``1 - IoU`` there. Two measures of agreement, both per object and then summarised over objects:
 
 * :func:`spearman_per_object`: Spearman's rank correlation between an object's scores and its losses (tied
   values get their average rank), summarised by :func:`mean_with_interval` (a Student-t 95 % interval).
@@ -15,31 +15,55 @@ Two measures of agreement, both per object and then summarised over objects:
   category mean loss map, the views the category as a whole is bad at.
 
 Bins count equally (a random pick is a uniformly random bin, not an area-uniform viewpoint).
+:func:`validity_table` puts both into a Markdown table; run as a script, it measures each checkpoint's map and
+writes ``OUT/score_validity.md``::
+
+    python -m research.score_validity --ckpt "None-VTR=runs/none/last.ckpt" --ckpt "VTR=runs/vtr/last.ckpt" \\
+        --data ~/.cache/lightning_vtr/embedded --split test --k 30 --objects 64 --out runs/score_validity
 """
 
 from __future__ import annotations
 
+import argparse
 import math
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+import torch.nn.functional as F
 from scipy import stats
+from torch import Tensor
 
-from lightning_vtr.utils.validation import check_float, check_int
+from lightning_vtr.evaluation import RobustnessMap
+from lightning_vtr.geometry import check_bin_interval
+from lightning_vtr.protocol import DEFAULT_THRESHOLD
+from lightning_vtr.selection import ErrorGuidedSelector, SelectionContext
+from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_probabilities
+from research.scores import InputScore
 
 __all__ = [
+    "OBJECT_SCORES",
     "Summary",
+    "bce_per_object",
     "category_mean_loss",
     "chance_hit_rate",
     "format_validity_table",
+    "main",
     "mean_with_interval",
+    "selection_scores",
     "spearman_per_object",
     "top_hit_rate",
     "validity_rows",
+    "validity_table",
     "worst_bins",
 ]
+
+#: The scores computed for one object alone from its prediction (and, for ``"input"``, its rendered views).
+OBJECT_SCORES: tuple[str, ...] = ("paper", "released", "visible", "input")
 
 
 def _pair(scores: np.ndarray, loss: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -339,3 +363,236 @@ def format_validity_table(rows: Sequence[Mapping[str, Any]], *, n: int = 3, frac
             f"| {row['hit_rate_category'].format()} | {row['chance_category']:.3f} | {row['objects']} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _model_device(model: Any) -> torch.device:
+    try:
+        return next(model.parameters()).device
+    except (AttributeError, StopIteration, TypeError):
+        return torch.device("cpu")
+
+
+def _records_and_transform(objects: Any, split: str, model: Any) -> tuple[list[Any], Any, Any]:
+    """``(records, transform, voxel loader)`` of a datamodule (its ``split``) or of a sequence of records."""
+    from lightning_vtr.data.dataset import load_voxels
+    from lightning_vtr.data.transforms import ImageTransform
+
+    if hasattr(objects, "split_records"):
+        records = list(objects.split_records(split))
+        return records, objects.transform, getattr(objects, "object_voxels", load_voxels)
+    return list(objects), ImageTransform(int(model.image_size)), load_voxels
+
+
+def bce_per_object(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean binary cross-entropy per object ``(B,)`` of ``pred, target (B, R, R, R)``; the loss the augmentation
+    callback gives the ``input`` score (predictions clamped to ``[1e-6, 1 - 1e-6]``)."""
+    return F.binary_cross_entropy(pred.clamp(1e-6, 1 - 1e-6), target, reduction="none").flatten(1).mean(1)
+
+
+def _training_images(objects: Any, record: Any, view_set: str, seed: int, num_views: int, transform: Any) -> Tensor:
+    """``(V, 3, h, w)``: the views the callback predicts an object from (``eval_item``), or a seeded choice."""
+    if hasattr(objects, "eval_item"):
+        return torch.as_tensor(objects.eval_item(record, view_set, seed=seed)["images"])
+    from lightning_vtr.data.dataset import load_rgba
+
+    paths, _ = record.views[view_set]
+    rng = np.random.default_rng([seed, zlib.crc32(f"{record.category}/{record.object_id}".encode())])
+    chosen = rng.choice(len(paths), size=num_views, replace=False)
+    return torch.as_tensor(transform(np.stack([load_rgba(paths[i]) for i in chosen])))
+
+
+def selection_scores(
+    model: Any,
+    objects: Any,
+    *,
+    k: int = 30,
+    scores: Sequence[str] = OBJECT_SCORES,
+    source_view_set: str = "aligned",
+    seed: int = 0,
+    synthesizer: Any = None,
+    transform: Any = None,
+    split: str = "test",
+    batch_size: int = 16,
+    threshold: float = DEFAULT_THRESHOLD,
+) -> dict[str, np.ndarray]:
+    """Each selection score of every object, ``{score: (objects, 180/K * 360/K)}``, bins pitch-major.
+
+    Each object is predicted from ``model.num_views`` of its ``source_view_set`` images (a datamodule's
+    ``eval_item(record, source_view_set, seed)``, the views the augmentation callback predicts from; for records, a
+    choice seeded by ``(seed, category/object_id)``), then scored by ``ErrorGuidedSelector(k, score=name,
+    threshold=threshold).score_views``. The ``input`` score renders every bin centre with ``synthesizer`` and
+    predicts from each alone (:func:`bce_per_object` as the loss, as in the callback).
+
+    Args:
+        model: a :class:`~lightning_vtr.protocol.ReconstructionModel`.
+        objects: a datamodule (its ``split`` objects) or a sequence of records, as for
+            :func:`~lightning_vtr.evaluation.robustness.robustness_map`; pass the same to both to align rows.
+        k: bin interval in degrees (divides 180).
+        scores: the score names, among ``paper``, ``released``, ``visible`` and ``input``.
+        source_view_set: the view set the training views come from.
+        seed: seeds the choice of training views.
+        synthesizer: renders the ``input`` score's views; ``None``: ``RenderSynthesizer(model.image_size)``.
+        transform: RGBA uint8 -> model input; ``None``: the datamodule's (``ImageTransform(model.image_size)``).
+        split: the datamodule split.
+        batch_size: objects per ``predict_voxels`` call (and single-view sets per call for ``input``).
+        threshold: the selector's occupancy threshold.
+
+    Returns:
+        Score name -> float64 ``(objects, bins)`` array, objects in the order of ``objects``.
+
+    Raises:
+        ValueError: an unknown score name, no objects, or a model output that is not probabilities.
+
+    Example::
+
+        scores = selection_scores(model, dm, k=30)
+        scores["paper"].shape  # (objects, 72)
+    """
+    k = check_bin_interval(k)
+    for name in scores:
+        check_choice("scores", name, OBJECT_SCORES)
+    batch_size = check_int("batch_size", batch_size, minimum=1)
+    records, default_transform, load_target = _records_and_transform(objects, split, model)
+    transform = default_transform if transform is None else transform
+    if not records:
+        raise ValueError("`objects` must hold at least one object to score, got none")
+    device = _model_device(model)
+    num_views = int(model.num_views)
+    was_training = bool(getattr(model, "training", False))
+    if hasattr(model, "eval"):
+        model.eval()
+    try:
+        images = [_training_images(objects, r, source_view_set, seed, num_views, transform) for r in records]
+        preds = []
+        with torch.inference_mode():
+            for lo in range(0, len(images), batch_size):
+                batch = model.predict_voxels(torch.stack(images[lo : lo + batch_size]).to(device))
+                preds.append(check_probabilities("predict_voxels", batch.detach().float().cpu()))
+        predicted = torch.cat(preds)
+        target = torch.stack([torch.as_tensor(load_target(r)).float() for r in records])
+        context = None
+        if "input" in scores:
+            from lightning_vtr.synthesis.base import SynthesisRequest
+
+            if synthesizer is None:
+                from lightning_vtr.synthesis.render import RenderSynthesizer
+
+                synthesizer = RenderSynthesizer(image_size=int(model.image_size))
+            requests = [
+                SynthesisRequest(
+                    object_id=r.object_id,
+                    category=r.category,
+                    source_images=np.zeros((0, 0, 0, 4), np.uint8),
+                    source_viewpoints=torch.as_tensor(
+                        np.asarray(r.views[source_view_set][1], dtype=np.float32).reshape(-1, 2)
+                    ),
+                    target_viewpoints=torch.zeros(0, 2),
+                    mesh_path=getattr(r, "mesh_path", None),
+                )
+                for r in records
+            ]
+            context = SelectionContext(
+                model=model,
+                synthesizer=synthesizer,
+                requests=requests,
+                transform=transform,
+                loss_fn=bce_per_object,
+                device=device,
+            )
+        out: dict[str, np.ndarray] = {}
+        for name in scores:
+            score: Any = name  # one of OBJECT_SCORES, checked above
+            if name == "input":
+                score = InputScore(model_batch_size=batch_size)
+            selector = ErrorGuidedSelector(score=score, k=k, threshold=threshold)
+            out[name] = selector.score_views(predicted, target, context if name == "input" else None).double().numpy()
+    finally:
+        if hasattr(model, "train"):
+            model.train(was_training)
+    return out
+
+
+def validity_table(
+    rmap: RobustnessMap,
+    scores: dict[str, np.ndarray],
+    *,
+    object_ids: Sequence[str] | None = None,
+    n: int = 3,
+    fraction: float = 0.1,
+) -> str:
+    """The score validity table (Markdown) of ``scores`` against the measured loss ``1 - rmap.iou``.
+
+    Args:
+        rmap: the robustness map (the truth).
+        scores: score name -> ``(objects, bins)`` from :func:`selection_scores` on the same objects.
+        object_ids: the ids the score rows belong to, checked against the map's (``None``: not checked).
+        n: bins a selector keeps.
+        fraction: share of bins that counts as the worst.
+
+    Returns:
+        The table of :func:`format_validity_table`.
+
+    Raises:
+        ValueError: scores of another shape than the map, or rows of other objects.
+
+    Example::
+
+        print(validity_table(rmap, selection_scores(model, dm, k=rmap.k)))
+    """
+    if object_ids is not None and list(object_ids) != rmap.object_ids:
+        raise ValueError("The scores' objects must be the map's objects, in the map's order")
+    for name, values in scores.items():
+        if np.shape(values) != rmap.iou.shape:
+            raise ValueError(f"Score {name!r} must have the map's shape {rmap.iou.shape}, got {np.shape(values)}")
+    rows = validity_rows(scores, 1.0 - rmap.iou, rmap.categories, n=n, fraction=fraction)
+    return format_validity_table(rows, n=n, fraction=fraction)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Measure each checkpoint's robustness map and write its score-validity table to ``OUT/score_validity.md``.
+
+    The options are those of ``lightning-vtr robustness`` that choose the objects and view sets (``--ckpt``,
+    ``--data``, ``--split``, ``--k``, ``--seed``, ``--objects``, ``--batch-size``, ``--device``); every checkpoint
+    is measured on the same objects. Returns the exit status 0.
+    """
+    from lightning_vtr.cli.pix3d import checkpoint_argument
+    from lightning_vtr.evaluation import make_datamodule, robustness_map
+    from lightning_vtr.evaluation.predict import resolve_device
+    from lightning_vtr.evaluation.robustness_callback import ObjectSubset, spread_over_categories
+    from lightning_vtr.models.registry import load_model
+
+    parser = argparse.ArgumentParser(prog="python -m research.score_validity", description=main.__doc__)
+    add = parser.add_argument
+    add("--ckpt", type=checkpoint_argument, action="append", required=True, metavar="[NAME=]CKPT")
+    add("--data", type=Path, required=True, metavar="DATASET", help="a ShapeNet-VTR directory with meshes")
+    add("--split", default="test", choices=("train", "val", "test"))
+    add("--out", type=Path, required=True, help="output directory (score_validity.md)")
+    add("--k", type=int, default=30, help="bin interval in degrees, dividing 180 (default 30)")
+    add("--seed", type=int, default=0, help="seed of the view sets and the training views (default 0)")
+    add("--objects", type=int, default=None, help="at most N objects, round-robin over the categories")
+    add("--batch-size", type=int, default=64, help="view sets per forward pass (default 64)")
+    add("--device", default="auto", help="torch device: auto, cpu, cuda:0, ...")
+    args = parser.parse_args(argv)
+    k = check_bin_interval(args.k, "--k")
+    device = resolve_device(args.device)
+    records: list[Any] | None = None
+    tables: dict[str, str] = {}
+    for name, path in args.ckpt:
+        model = load_model(path).to(device)
+        dm = make_datamodule(path, model, Path(args.data).expanduser())
+        if records is None:
+            records = spread_over_categories(dm.split_records(args.split), args.objects)
+        objects = ObjectSubset(dm, records)
+        rmap = robustness_map(model, objects, k=k, seed=args.seed, split=args.split, batch_size=args.batch_size)
+        scores = selection_scores(model, objects, k=k, seed=args.seed, split=args.split)
+        tables[name] = validity_table(rmap, scores, object_ids=[r.object_id for r in records])
+        print(f"{name}:\n{tables[name]}")
+    out = Path(args.out).expanduser()
+    out.mkdir(parents=True, exist_ok=True)
+    text = "".join(f"## {name}\n\n{table.rstrip()}\n\n" for name, table in tables.items())
+    (out / "score_validity.md").write_text(f"# Score validity\n\n{text}", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

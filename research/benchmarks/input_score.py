@@ -1,6 +1,6 @@
-"""Cost of the input-side view score, ``ErrorGuidedSelector(score="input")``, against the ``visible`` score.
+"""Cost of the input-side research score, ``ErrorGuidedSelector(score=InputScore())``, against ``visible``.
 
-Run: ``python benchmarks/input_score.py`` (options: ``--objects``, ``--k``, ``--threads``, ``--repeats``).
+Run from the repository root: ``python -m research.benchmarks.input_score`` (options: ``--objects``, ``--k``, ``--threads``, ``--repeats``).
 On the embedded dataset's first training objects and tiny Pix2Vox++ (random weights: the cost does not depend
 on them), it times one selection per object as the callback makes it: every bin centre rendered from the mesh
 (the callback's default synthesizer), turned into model input, predicted from alone, and scored by the loss.
@@ -19,6 +19,7 @@ import torch
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.experiments.training import ExperimentConfig, make_datamodule, make_model
 from lightning_vtr.selection import ErrorGuidedSelector
+from research.scores import InputScore
 
 
 class _Timed:
@@ -55,7 +56,7 @@ def main() -> None:
     with torch.no_grad():
         predicted = model.predict_voxels(torch.stack([it["images"] for it in items]))
 
-    selector = ErrorGuidedSelector(k=args.k, score="input", min_separation=30.0, temperature=1.0)
+    selector = ErrorGuidedSelector(k=args.k, score=InputScore(), min_separation=30.0, temperature=1.0)
     callback = ErrorGuidedViewAugmentation(selector=selector, progress_bar=False)
     render = _Timed(callback.synthesizer.synthesize)
     callback.synthesizer.synthesize = render

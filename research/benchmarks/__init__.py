@@ -1,0 +1,1 @@
+"""Benchmarks of the research scores (run each as ``python -m research.benchmarks.<name>`` from the repository root)."""

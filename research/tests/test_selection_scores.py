@@ -1,0 +1,132 @@
+"""The score-validity study's scores: every selection score of an object, aligned with its robustness map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from lightning_vtr.data.dataset import load_voxels
+from lightning_vtr.data.format import scan_dataset
+from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.evaluation import robustness_map
+from lightning_vtr.geometry import candidate_viewpoints
+from lightning_vtr.synthesis.base import SynthesisRequest
+from lightning_vtr.synthesis.render import RenderSynthesizer
+from research.score_validity import bce_per_object, selection_scores, validity_table
+
+K = 60
+N_BINS = (180 // K) * (360 // K)
+
+
+@pytest.fixture(scope="module")
+def dataset_root(tmp_path_factory):
+    """A dataset of 2 procedural chairs and 2 tables, all in the train split, with meshes and 32-px images."""
+    from lightning_vtr.data.builder import build_dataset
+
+    root = tmp_path_factory.mktemp("robustness_vtr")
+    build_dataset(
+        root,
+        source="procedural",
+        categories=["chair", "table"],
+        objects_per_category=2,
+        image_size=32,
+        resolution=32,
+        views_per_set=3,
+        split=(1.0, 0.0, 0.0),
+        seed=0,
+        workers=1,
+        progress=False,
+    )
+    return root
+
+
+@pytest.fixture(scope="module")
+def objects(dataset_root):
+    """Three of its objects (two chairs, one table)."""
+    return scan_dataset(dataset_root)[:3]
+
+
+class ImageMeanModel(nn.Module):
+    """Occupancy ``sigmoid(30 (mean of view 0 - mean of all views) + b)`` with a fixed random ``b`` per voxel:
+    what it predicts depends on the views, so view sets drawn with another seed give another IoU."""
+
+    image_size = 32
+    num_views = 3
+    voxel_resolution = 32
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias = nn.Parameter(torch.randn(32, 32, 32, generator=torch.Generator().manual_seed(0)))
+
+    def predict_voxels(self, images):
+        level = images.float().mean(dim=(2, 3, 4))
+        contrast = level[:, 0] - level.mean(dim=1)
+        return torch.sigmoid(30 * contrast[:, None, None, None] + self.bias)
+
+
+class OracleModel:
+    """Returns each object's ground truth, in the order the map asks: ``per_object`` sets per object."""
+
+    image_size = 32
+    num_views = 3
+    voxel_resolution = 32
+
+    def __init__(self, targets: torch.Tensor, per_object: int) -> None:
+        self.targets, self.per_object, self.seen = targets, per_object, 0
+
+    def predict_voxels(self, images):
+        rows = (torch.arange(images.shape[0]) + self.seen) // self.per_object
+        self.seen += images.shape[0]
+        return self.targets[rows]
+
+
+def measure(model, objects, **kw):
+    kw.setdefault("synthesizer", RenderSynthesizer(image_size=32))
+    return robustness_map(model, objects, k=K, progress=False, **kw)
+
+
+class SilhouetteModel(ImageMeanModel):
+    """Occupancy ``sigmoid(10 (silhouette area - 0.15) + b)``: it depends on a single view too, unlike its parent."""
+
+    def predict_voxels(self, images):
+        area = (images[:, :, 0] < 2.0).float().mean(dim=(1, 2, 3))  # white is 2.25 after ImageNet normalisation
+        return torch.sigmoid(10 * (area - 0.15)[:, None, None, None] + self.bias)
+
+
+def test_selection_scores_are_aligned_with_the_map(objects):
+    model = SilhouetteModel()
+    synthesizer = RenderSynthesizer(image_size=32)
+    scores = selection_scores(model, objects, k=K, synthesizer=synthesizer)
+    assert sorted(scores) == ["input", "paper", "released", "visible"]
+    assert all(v.shape == (3, N_BINS) for v in scores.values())
+    # the input score of object 1 at bin 7 is the loss of the model given that bin centre's image alone
+    centre = candidate_viewpoints(K)[7:8]
+    rendered = synthesizer.synthesize(
+        [
+            SynthesisRequest(
+                object_id=objects[1].object_id,
+                category=objects[1].category,
+                source_images=np.zeros((0, 0, 0, 4), np.uint8),
+                source_viewpoints=torch.zeros(0, 2),
+                target_viewpoints=centre,
+                mesh_path=objects[1].mesh_path,
+            )
+        ]
+    )[0]
+    with torch.no_grad():
+        pred = model.predict_voxels(ImageTransform(32)(rendered)[None])
+    expected = bce_per_object(pred, load_voxels(objects[1])[None])
+    assert scores["input"][1, 7] == pytest.approx(float(expected), rel=1e-5)
+    assert scores["input"][1].std() > 1e-4  # the views differ, and so do their losses
+    # a prediction equal to the truth has no error to project
+    oracle = OracleModel(torch.stack([load_voxels(r) for r in objects]), per_object=1)
+    exact = selection_scores(oracle, objects, k=K, scores=("paper", "released", "visible"))
+    assert all((v == 0).all() for v in exact.values())
+    rmap = measure(model, objects)
+    table = validity_table(rmap, scores, object_ids=[r.object_id for r in objects])
+    assert table.startswith("| score | Spearman")
+    assert [line.split("|")[1].strip() for line in table.splitlines()[2:]] == list(scores)
+    with pytest.raises(ValueError, match="shape"):
+        validity_table(rmap, {"paper": scores["paper"][:2]})
