@@ -9,7 +9,7 @@ It prints Table 1 and the paired differences of your selector to the three other
 agreeing in sign) and writes the report's files (Table 1 as Markdown / CSV / LaTeX, report.json, ...) and each
 strategy's viewpoint robustness map under ``--out``.
 
-    python examples/benchmark_your_method.py                       # 3 seeds, about 9 min on 2 CPU cores
+    python examples/benchmark_your_method.py                       # 3 seeds: about 270 s of CPU time
     python examples/benchmark_your_method.py --seeds 0 --pretrain-epochs 1 --finetune-epochs 1   # a first look
 
 Runs are cached under ``--out``: re-running skips the finished runs. Swap in your own classes: any LightningModule

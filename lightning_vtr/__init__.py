@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from lightning_vtr.utils.exports import lazy_exports
 
-if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read
     from lightning_vtr.callback import ErrorGuidedViewAugmentation
     from lightning_vtr.data.datamodule import VTRDataModule
     from lightning_vtr.protocol import (
@@ -19,6 +19,21 @@ if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run
         check_reconstruction_model,
     )
     from lightning_vtr.selection.registry import SELECTORS
+else:  # at run time each name is imported from its module on first use
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "lightning_vtr.callback": ["ErrorGuidedViewAugmentation"],
+            "lightning_vtr.data.datamodule": ["VTRDataModule"],
+            "lightning_vtr.protocol": [
+                "AugmentableDataModule",
+                "ReconstructionModel",
+                "check_augmentable_datamodule",
+                "check_reconstruction_model",
+            ],
+            "lightning_vtr.selection.registry": ["SELECTORS"],
+        },
+    )
 
 __version__ = "0.4.0"
 
@@ -32,17 +47,3 @@ __all__ = [
     "check_augmentable_datamodule",
     "check_reconstruction_model",
 ]
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "lightning_vtr.callback": ["ErrorGuidedViewAugmentation"],
-        "lightning_vtr.data.datamodule": ["VTRDataModule"],
-        "lightning_vtr.protocol": [
-            "AugmentableDataModule",
-            "ReconstructionModel",
-            "check_augmentable_datamodule",
-            "check_reconstruction_model",
-        ],
-        "lightning_vtr.selection.registry": ["SELECTORS"],
-    },
-)

@@ -95,7 +95,7 @@ def _package_folders() -> list[str]:
     folders = [
         entry
         for entry in sys.path
-        if Path(entry).name in ("site-packages", "dist-packages") and Path(entry).is_dir() and ROOT != Path(entry)
+        if Path(entry).name in ("site-packages", "dist-packages") and Path(entry).is_dir() and Path(entry) != ROOT
     ]
     assert folders, f"no site-packages folder on sys.path: {sys.path}"
     return folders

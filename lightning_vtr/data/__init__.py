@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING
 
 from lightning_vtr.utils.exports import lazy_exports
 
-if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read
     from lightning_vtr.data.builder import BuildReport, build_dataset, ensure_embedded_dataset
     from lightning_vtr.data.datamodule import VTRDataModule
     from lightning_vtr.data.dataset import GeneratedSample
@@ -17,6 +17,22 @@ if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run
     from lightning_vtr.data.transforms import IMAGE_RECIPES, ImageRecipe, ImageTransform
     from lightning_vtr.data.verify import VerifyReport, verify_dataset
     from lightning_vtr.protocol import VIEW_SETS
+else:  # at run time each name is imported from its module on first use
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "lightning_vtr.data.builder": ["BuildReport", "build_dataset", "ensure_embedded_dataset"],
+            "lightning_vtr.data.datamodule": ["VTRDataModule"],
+            "lightning_vtr.data.dataset": ["GeneratedSample"],
+            "lightning_vtr.data.folder_test_set": ["FolderTestSet"],
+            "lightning_vtr.data.format": ["DatasetFormatError", "ObjectRecord", "scan_dataset"],
+            "lightning_vtr.data.pix3d": ["Pix3DDataset", "Pix3DRecord", "read_pix3d"],
+            "lightning_vtr.data.shapenet_rendering": ["ShapeNetRenderingSource"],
+            "lightning_vtr.data.transforms": ["IMAGE_RECIPES", "ImageRecipe", "ImageTransform"],
+            "lightning_vtr.data.verify": ["VerifyReport", "verify_dataset"],
+            "lightning_vtr.protocol": ["VIEW_SETS"],
+        },
+    )
 
 __all__ = [
     "IMAGE_RECIPES",
@@ -39,18 +55,3 @@ __all__ = [
     "scan_dataset",
     "verify_dataset",
 ]
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "lightning_vtr.data.builder": ["BuildReport", "build_dataset", "ensure_embedded_dataset"],
-        "lightning_vtr.data.datamodule": ["VTRDataModule"],
-        "lightning_vtr.data.dataset": ["GeneratedSample"],
-        "lightning_vtr.data.folder_test_set": ["FolderTestSet"],
-        "lightning_vtr.data.format": ["DatasetFormatError", "ObjectRecord", "scan_dataset"],
-        "lightning_vtr.data.pix3d": ["Pix3DDataset", "Pix3DRecord", "read_pix3d"],
-        "lightning_vtr.data.shapenet_rendering": ["ShapeNetRenderingSource"],
-        "lightning_vtr.data.transforms": ["IMAGE_RECIPES", "ImageRecipe", "ImageTransform"],
-        "lightning_vtr.data.verify": ["VerifyReport", "verify_dataset"],
-        "lightning_vtr.protocol": ["VIEW_SETS"],
-    },
-)

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 from lightning_vtr.utils.exports import lazy_exports
 
-if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read
     from lightning_vtr.evaluation.dataset import (
         evaluate_dataset,
         evaluate_folder,
@@ -55,6 +55,42 @@ if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run
     )
     from lightning_vtr.evaluation.robustness_callback import RobustnessMapLogger
     from lightning_vtr.evaluation.robustness_plot import map_file_stem, plot_difference, plot_map, write_index_html
+else:  # at run time each name is imported from its module on first use
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "lightning_vtr.evaluation.dataset": [
+                "evaluate_dataset",
+                "evaluate_folder",
+                "evaluation_notes",
+                "evaluation_rows",
+                "format_evaluation_table",
+                "write_evaluation",
+            ],
+            "lightning_vtr.evaluation.pix3d": ["evaluate_pix3d", "frame_check", "frame_check_summary"],
+            "lightning_vtr.evaluation.predict": [
+                "export_predictions",
+                "make_datamodule",
+                "predict_dataset",
+                "predict_folders",
+                "read_view_folder",
+            ],
+            "lightning_vtr.evaluation.robustness": [
+                "RobustnessMap",
+                "bin_area_fractions",
+                "read_bins_csv",
+                "robustness_map",
+                "view_sets_around_bins",
+            ],
+            "lightning_vtr.evaluation.robustness_callback": ["RobustnessMapLogger"],
+            "lightning_vtr.evaluation.robustness_plot": [
+                "map_file_stem",
+                "plot_difference",
+                "plot_map",
+                "write_index_html",
+            ],
+        },
+    )
 
 __all__ = [
     "RobustnessMap",
@@ -82,38 +118,3 @@ __all__ = [
     "write_evaluation",
     "write_index_html",
 ]
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "lightning_vtr.evaluation.dataset": [
-            "evaluate_dataset",
-            "evaluate_folder",
-            "evaluation_notes",
-            "evaluation_rows",
-            "format_evaluation_table",
-            "write_evaluation",
-        ],
-        "lightning_vtr.evaluation.pix3d": ["evaluate_pix3d", "frame_check", "frame_check_summary"],
-        "lightning_vtr.evaluation.predict": [
-            "export_predictions",
-            "make_datamodule",
-            "predict_dataset",
-            "predict_folders",
-            "read_view_folder",
-        ],
-        "lightning_vtr.evaluation.robustness": [
-            "RobustnessMap",
-            "bin_area_fractions",
-            "read_bins_csv",
-            "robustness_map",
-            "view_sets_around_bins",
-        ],
-        "lightning_vtr.evaluation.robustness_callback": ["RobustnessMapLogger"],
-        "lightning_vtr.evaluation.robustness_plot": [
-            "map_file_stem",
-            "plot_difference",
-            "plot_map",
-            "write_index_html",
-        ],
-    },
-)

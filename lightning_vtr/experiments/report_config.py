@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from lightning_vtr.experiments.config import ExperimentConfig, flag
+from lightning_vtr.experiments.strategies import STRATEGIES
 
 if TYPE_CHECKING:
     from lightning_vtr.experiments.strategies import StrategyVariant
@@ -26,8 +27,8 @@ __all__ = [
     "METRICS",
     "PITCH_BANDS",
     "REPORT_EXPERIMENT",
-    "STRATEGIES",  # noqa: F822  (module __getattr__: read on first use)
-    "STRATEGY_TITLES",  # noqa: F822
+    "STRATEGIES",
+    "STRATEGY_TITLES",
     "ReportConfig",
     "auto_jobs",
     "default_experiment",
@@ -315,8 +316,10 @@ def __getattr__(name: str) -> Any:
         from lightning_vtr.experiments.strategies import VARIANTS
 
         return {key: variant.title for key, variant in VARIANTS.items()}
-    if name == "STRATEGIES":
-        from lightning_vtr.experiments import strategies
-
-        return strategies.STRATEGIES
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+if TYPE_CHECKING:
+    STRATEGY_TITLES: dict[str, str]
+    """Row title per name of :data:`~lightning_vtr.experiments.strategies.VARIANTS` (the shipped rows), read on
+    first use."""

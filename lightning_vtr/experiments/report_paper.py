@@ -19,7 +19,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from lightning_vtr.evaluation.tables import VIEW_SET_TITLES
 from lightning_vtr.experiments.report_config import METRICS
@@ -333,7 +333,7 @@ def report_record(
     payloads: dict[str, dict[int, dict]],
     table1: dict[str, dict[str, dict[str, Estimate | None]]],
     differences: dict[str, dict[str, dict[str, dict[str, Estimate | None]]]],
-    categories: dict[str, dict[str, dict[str, Estimate | None]]],
+    categories: dict[str, dict[str, dict[str, dict[str, Estimate | None]]]],
     maps: dict[str, Any],
     files: dict[str, str],
 ) -> dict[str, Any]:
@@ -443,6 +443,7 @@ def _strategy_settings(config: Any, runs: Sequence[Any]) -> dict[str, Any]:
             run.strategy, seed_exp, config.synthesizer, run.selector_kwargs, callback_kwargs, variants=variants
         )
         if callback is not None:
+            callback = cast(Any, callback)  # an ErrorGuidedViewAugmentation (make_strategy's annotation: Callback)
             selector = callback.selector
             entry["selector"] = f"{type(selector).__module__}.{type(selector).__qualname__}"
             entry["selector_repr"] = repr(selector)

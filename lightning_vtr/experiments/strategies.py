@@ -168,6 +168,13 @@ def selector_class(name: str, where: str = "selector") -> type:
     """The selector class a row names: a key of :data:`lightning_vtr.selection.SELECTORS` or an import path
     ``module.Class`` of a :class:`~lightning_vtr.selection.ViewSelector` subclass (the working folder importable).
 
+    Args:
+        name: the row's ``selector`` (a registry name) or its ``class_path``.
+        where: what the error message names (e.g. ``"my.yaml, row 'mine'"``).
+
+    Returns:
+        The selector class.
+
     Raises:
         ValueError: neither (a :class:`~lightning_vtr.errors.UsageError` naming ``where`` and the problem).
 

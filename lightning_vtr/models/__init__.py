@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from lightning_vtr.utils.exports import lazy_exports
 
-if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read
     from lightning_vtr.models.base import VoxelReconstructionModule
     from lightning_vtr.models.lrgt import LRGT, LRGT_PRESETS, LRGTSpec
     from lightning_vtr.models.pix2vox import PIX2VOX_PRESETS, Pix2VoxPlusPlus, Pix2VoxSpec
@@ -22,6 +22,20 @@ if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run
     from lightning_vtr.models.vit import DistilledVisionTransformer, load_timm_deit
     from lightning_vtr.models.weights import IMAGENET_WEIGHTS, WeightsDownloadError, load_weights
     from lightning_vtr.protocol import VIEW_SETS
+else:  # at run time each name is imported from its module on first use
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "lightning_vtr.models.base": ["VoxelReconstructionModule"],
+            "lightning_vtr.models.lrgt": ["LRGT", "LRGT_PRESETS", "LRGTSpec"],
+            "lightning_vtr.models.pix2vox": ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec"],
+            "lightning_vtr.models.registry": ["MODELS", "check_checkpoint", "load_model"],
+            "lightning_vtr.models.resnet": ["ResNet50Stem", "load_torchvision_resnet50"],
+            "lightning_vtr.models.vit": ["DistilledVisionTransformer", "load_timm_deit"],
+            "lightning_vtr.models.weights": ["IMAGENET_WEIGHTS", "WeightsDownloadError", "load_weights"],
+            "lightning_vtr.protocol": ["VIEW_SETS"],
+        },
+    )
 
 __all__ = [
     "IMAGENET_WEIGHTS",
@@ -43,16 +57,3 @@ __all__ = [
     "load_torchvision_resnet50",
     "load_weights",
 ]
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "lightning_vtr.models.base": ["VoxelReconstructionModule"],
-        "lightning_vtr.models.lrgt": ["LRGT", "LRGT_PRESETS", "LRGTSpec"],
-        "lightning_vtr.models.pix2vox": ["PIX2VOX_PRESETS", "Pix2VoxPlusPlus", "Pix2VoxSpec"],
-        "lightning_vtr.models.registry": ["MODELS", "check_checkpoint", "load_model"],
-        "lightning_vtr.models.resnet": ["ResNet50Stem", "load_torchvision_resnet50"],
-        "lightning_vtr.models.vit": ["DistilledVisionTransformer", "load_timm_deit"],
-        "lightning_vtr.models.weights": ["IMAGENET_WEIGHTS", "WeightsDownloadError", "load_weights"],
-        "lightning_vtr.protocol": ["VIEW_SETS"],
-    },
-)

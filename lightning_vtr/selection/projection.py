@@ -212,6 +212,15 @@ def visible_error_scores(
 
     Returns:
         ``(B, V)`` scores, dtype of ``predicted``.
+
+    Example:
+        >>> target = torch.zeros(1, 8, 8, 8)
+        >>> target[0, 2:6, 2:6, 2:6] = 1.0  # a cube of side 4 voxels
+        >>> predicted = target.clone()
+        >>> predicted[0, 2:6, 2:6, 5] = 0.0  # its top slab missed
+        >>> scores = visible_error_scores(predicted, target, torch.tensor([[0.0, 90.0], [0.0, -90.0]]))
+        >>> bool(scores[0, 0] > 0), scores[0, 1].item()  # from above the missed top is seen; from below nothing
+        (True, 0.0)
     """
     predicted, target = check_volume_pair(predicted, target)
     threshold = check_float("threshold", threshold, minimum=0.0, maximum=1.0)

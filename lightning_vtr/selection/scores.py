@@ -39,6 +39,12 @@ __all__ = [
 def rows_by_category(categories: list[str]) -> dict[str, list[int]]:
     """The batch rows of each category, categories in order of first appearance.
 
+    Args:
+        categories: the category of each batch row.
+
+    Returns:
+        ``{category: [row, ...]}``, in order of first appearance.
+
     Example:
         >>> rows_by_category(["chair", "table", "chair"])
         {'chair': [0, 2], 'table': [1]}
@@ -59,6 +65,12 @@ class ScoreSetup:
         num_views: views the selector draws around a chosen bin.
         sigma: standard deviation in degrees of those draws.
         threshold: occupancy threshold of the predictions.
+
+    Example:
+        >>> from lightning_vtr.geometry import candidate_viewpoints
+        >>> setup = ScoreSetup(k=30, candidates=candidate_viewpoints(30), num_views=3, sigma=5.0, threshold=0.4)
+        >>> setup.candidates.shape  # 12 yaw x 6 pitch bins
+        torch.Size([72, 2])
     """
 
     k: int
@@ -74,6 +86,16 @@ class ViewScore(abc.ABC):
     A subclass sets :attr:`name` and the class attributes below, implements :meth:`__call__` and
     :meth:`settings` (its constructor arguments), and overrides :meth:`state_dict` / :meth:`load_state_dict`
     if it learns across calls.
+
+    Example:
+        >>> class TopDown(ViewScore):  # prefers views from above, whatever the error
+        ...     name = "top_down"
+        ...     def __call__(self, predicted, target, categories, setup, context=None, generator=None):
+        ...         return (setup.candidates[:, 1] + 90.0).expand(len(predicted), -1)
+        ...     def settings(self):
+        ...         return {}
+        >>> TopDown()
+        TopDown()
     """
 
     #: The score's name in :data:`SCORES` (``ErrorGuidedSelector(score=name)``).
@@ -136,6 +158,10 @@ class ProjectionScore(ViewScore):
     Raises:
         TypeError: an argument of the wrong type.
         ValueError: naming the argument and the bad value.
+
+    Example:
+        >>> ProjectionScore(reduction="mean")
+        ProjectionScore(mode='binary', mask='none', reduction='mean', eps=0.0)
     """
 
     name: ClassVar[str] = "projection"
@@ -195,6 +221,11 @@ class PaperScore(ProjectionScore):
         mask: ``"none"`` (default) or ``"gt"``.
         reduction: ``"sum"`` (default) or ``"mean"``.
         eps: ``0.0`` (default): transparency threshold of the projection.
+
+    Example:
+        >>> from lightning_vtr.selection import ErrorGuidedSelector
+        >>> ErrorGuidedSelector.paper().score_options
+        PaperScore(mode='binary', mask='none', reduction='sum', eps=0.0)
     """
 
     name: ClassVar[str] = "paper"
@@ -210,6 +241,10 @@ class ReleasedScore(ProjectionScore):
         mask: ``"gt"`` (default) or ``"none"``.
         reduction: ``"mean"`` (default) or ``"sum"``.
         eps: ``0.0`` (default): transparency threshold of the projection.
+
+    Example:
+        >>> ReleasedScore()
+        ReleasedScore(mode='soft', mask='gt', reduction='mean', eps=0.0)
     """
 
     name: ClassVar[str] = "released"
@@ -237,6 +272,11 @@ class VisibleScore(ViewScore):
 
     Raises:
         ValueError: an unknown ``mode``.
+
+    Example:
+        >>> from lightning_vtr.selection import ErrorGuidedSelector
+        >>> ErrorGuidedSelector().score_options  # the default rule's score
+        VisibleScore(mode='binary')
     """
 
     name: ClassVar[str] = "visible"
@@ -264,9 +304,9 @@ class VisibleScore(ViewScore):
         )
 
 
-#: Score name -> score class with its defaults (``ErrorGuidedSelector(score=name)``).
 SCORES: dict[str, type[ViewScore]] = {
     "paper": PaperScore,
     "released": ReleasedScore,
     "visible": VisibleScore,
 }
+"""Score name -> score class, built with its defaults by ``ErrorGuidedSelector(score=name)``."""

@@ -6,12 +6,23 @@ from typing import TYPE_CHECKING
 
 from lightning_vtr.utils.exports import lazy_exports
 
-if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read; at run time names load on first use
+if TYPE_CHECKING:  # what type checkers, IDEs and the API reference read
     from lightning_vtr.synthesis.base import SynthesisRequest, Synthesizer
     from lightning_vtr.synthesis.cache import CachedSynthesizer, SynthesisCache
     from lightning_vtr.synthesis.pose import nearest_source_view, relative_pose
     from lightning_vtr.synthesis.render import RenderSynthesizer
     from lightning_vtr.synthesis.zero123 import Zero123CheckpointError, Zero123Synthesizer
+else:  # at run time each name is imported from its module on first use
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "lightning_vtr.synthesis.base": ["SynthesisRequest", "Synthesizer"],
+            "lightning_vtr.synthesis.cache": ["CachedSynthesizer", "SynthesisCache"],
+            "lightning_vtr.synthesis.pose": ["nearest_source_view", "relative_pose"],
+            "lightning_vtr.synthesis.render": ["RenderSynthesizer"],
+            "lightning_vtr.synthesis.zero123": ["Zero123CheckpointError", "Zero123Synthesizer"],
+        },
+    )
 
 __all__ = [
     "CachedSynthesizer",
@@ -24,13 +35,3 @@ __all__ = [
     "nearest_source_view",
     "relative_pose",
 ]
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        "lightning_vtr.synthesis.base": ["SynthesisRequest", "Synthesizer"],
-        "lightning_vtr.synthesis.cache": ["CachedSynthesizer", "SynthesisCache"],
-        "lightning_vtr.synthesis.pose": ["nearest_source_view", "relative_pose"],
-        "lightning_vtr.synthesis.render": ["RenderSynthesizer"],
-        "lightning_vtr.synthesis.zero123": ["Zero123CheckpointError", "Zero123Synthesizer"],
-    },
-)

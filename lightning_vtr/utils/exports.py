@@ -3,8 +3,9 @@
 Every package of :mod:`lightning_vtr` re-exports its public names this way, so importing one module of a
 package (``lightning_vtr.synthesis.pose``) costs that module alone, not every dependency of its siblings
 (Lightning, diffusers, matplotlib). An ``__init__.py`` lists the names three times: under ``if TYPE_CHECKING:``
-as ordinary imports (what type checkers, IDEs and the API reference read), in ``__all__``, and in the mapping
-given to :func:`lazy_exports`; ``tests/utils/test_exports.py`` checks that the three agree.
+as ordinary imports (what type checkers, IDEs and the API reference read), in the mapping given to
+:func:`lazy_exports` in that block's ``else:`` branch (so type checkers do not see a module ``__getattr__`` and
+still report unknown names), and in ``__all__``; ``tests/utils/test_exports.py`` checks that the three agree.
 """
 
 from __future__ import annotations

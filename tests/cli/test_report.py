@@ -47,7 +47,7 @@ def test_cli_builds_the_report_config(captured):
         "0",
         "1",
         "--strategies",
-        "none,viat,visible_nms",
+        "none,viat,error_guided",
         "--ablations",
         "k,single_view",
         "--test-repeats",
@@ -72,7 +72,7 @@ def test_cli_builds_the_report_config(captured):
     assert isinstance(config, ReportConfig)
     assert (config.seeds, config.strategies, config.ablations) == (
         [0, 1],
-        ["none", "viat", "visible_nms"],
+        ["none", "viat", "error_guided"],
         ["k", "single_view"],
     )
     assert config.experiment == default_experiment(
@@ -96,7 +96,7 @@ def test_cli_defaults_are_the_report_defaults(captured, monkeypatch):
     assert main(["report"]) == 0
     config = captured[-1]
     assert config.experiment == ReportConfig().experiment == default_experiment()
-    assert config.strategies == list(MAIN_STRATEGIES) == ["none", "random", "error_guided", "paper"]
+    assert config.strategies == list(MAIN_STRATEGIES) == ["none", "random", "random_area", "paper", "error_guided"]
     assert config.ablations == [] and config.seeds == [0, 1, 2]
     assert config.experiment.test_repeats == 4
     # Old command lines: --no-ablations is the default now, still accepted.

@@ -170,7 +170,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
     diffs = [runs["error_guided"]["results"][s]["iou@0.4"] - runs["none"]["results"][s]["iou@0.4"] for s in VIEW_SETS]
     assert rows == {"Error-guided (default rule)": [f"{100 * d:+.2f}, {int(d != 0)}/1" for d in diffs]}
-    assert "Paired difference to Random (mIoU points)" not in tables
+    assert "Paired difference to Random (paper: angle-uniform) (mIoU points)" not in tables
     # The views the callback generated: a start selection and one after epoch 0, 3 objects each.
     _, rows = tables["Where the training views went"]
     assert list(rows) == ["Error-guided (default rule)"] and rows["Error-guided (default rule)"][0] == "6"
@@ -278,13 +278,13 @@ def test_report_config_gives_each_seed_the_experiment_with_its_own_seed_and_dire
     assert (default.test_repeats, ExperimentConfig().test_repeats) == (4, 1)
     assert (ReportConfig().seeds, ReportConfig().strategies, ReportConfig().ablations) == (
         [0, 1, 2],
-        ["none", "random", "error_guided", "paper"],
+        ["none", "random", "random_area", "paper", "error_guided"],
         [],
     )
 
 
 def test_plan_adds_the_runs_the_ablations_need():
-    assert [r.name for r in _plan(ReportConfig())] == ["none", "random", "error_guided", "paper"]
+    assert [r.name for r in _plan(ReportConfig())] == ["none", "random", "random_area", "paper", "error_guided"]
     names = [r.name for r in _plan(ReportConfig(strategies=["viat"], ablations=ABLATIONS))]
     assert names == [
         "none",
@@ -422,7 +422,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     single_runs = {"None-VTR (1 view)": "single_view_none", "Default rule (1 view)": "single_view_error_guided"}
     assert rows == {t: [cell(r, v, m) for v, m in both] for t, r in single_runs.items()}
     # Per-seed differences are constant here (the seed term cancels): no spread, every seed agrees.
-    _, rows = tables["Paired difference to Random (mIoU points)"]
+    _, rows = tables["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
     gap = (names.index("paper") - names.index("random")) * 7 / 2
     assert rows["Error-guided (paper's rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}], 2/2"] * 3
 
@@ -494,7 +494,8 @@ def test_paired_differences_against_none_and_random_with_intervals_and_sign_agre
         "paper": dict(none),
     }
     _stub_runs(monkeypatch, tmp_path, iou)
-    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, selector_kwargs=_OWN_PAPER_RUN)
+    strategies = ["none", "random", "paper", "error_guided"]
+    config = ReportConfig(default_experiment(out=str(tmp_path / "r")), seeds=seeds, strategies=strategies)
     result = run_report(config)
     tables = _parse_tables(result["markdown"])
     t = stats.t.ppf(0.975, 2)
@@ -508,12 +509,12 @@ def test_paired_differences_against_none_and_random_with_intervals_and_sign_agre
     header, rows = tables["Paired difference to None-VTR (mIoU points)"]
     assert header == ["Method", "Aligned", "Hemispherical", "Spherical"]
     assert rows == {
-        "Random": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48], 3/3
+        "Random (paper: angle-uniform)": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48], 3/3
         "Error-guided (default rule)": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97], 2/3
         "Error-guided (paper's rule)": ["+0.00 [+0.00, +0.00], 0/3"] * 3,
     }
     assert rows["Random (paper: angle-uniform)"][0] == "+2.00 [-0.48, +4.48], 3/3"
-    _, rows = tables["Paired difference to Random (mIoU points)"]
+    _, rows = tables["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
     assert rows == {
         "None-VTR": [expected([-1, -2, -3])] * 3,
         "Error-guided (default rule)": [expected([2, -3, -2])] * 3,
@@ -567,10 +568,10 @@ def test_view_distribution_table_pools_every_seeds_generated_views(tmp_path, mon
     ]
     # "none" and "error_guided" generated nothing: no row.
     assert rows == {
-        "Random": ["2", "50.0", "0.0", "0.0", "33.3", "16.7", "0.0", "50.0", "63.3"],
+        "Random (paper: angle-uniform)": ["2", "50.0", "0.0", "0.0", "33.3", "16.7", "0.0", "50.0", "63.3"],
         "Error-guided (paper's rule)": ["1", "0.0", "0.0", "0.0", "66.7", "33.3", "0.0", "100.0", "120.0"],
     }
-    assert result["views"]["Random"]["triplet_spread"] == pytest.approx((120 + 20 / 3) / 2)
+    assert result["views"]["Random (paper: angle-uniform)"]["triplet_spread"] == pytest.approx((120 + 20 / 3) / 2)
     assert (tmp_path / "r" / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -609,7 +610,7 @@ def test_strategies_resolving_to_the_same_arguments_are_fitted_once_and_shown_in
 
     assert calls == ["none", "random", "paper"] * 2  # no "paper_again" fit
     assert result["runs"]["paper_again"] == result["runs"]["paper"]
-    _, rows = _parse_tables(result["markdown"])["Paired difference to Random (mIoU points)"]
+    _, rows = _parse_tables(result["markdown"])["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
     assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+1.00 [+1.00, +1.00], 2/2"] * 3
     assert (
         "fitted once because their selector and callback arguments are identical: "
@@ -713,7 +714,7 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
     _, rows = tables["Validation split: paired difference to None-VTR (mIoU points)"]
     assert rows["Random (paper: angle-uniform)"] == ["+2.00 [-0.48, +4.48], 3/3"] * 3
     assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+0.00 [-2.48, +2.48], 0/3"] * 3
-    _, rows = tables["Validation split: paired difference to Random (mIoU points)"]
+    _, rows = tables["Validation split: paired difference to Random (paper: angle-uniform) (mIoU points)"]
     assert rows["Error-guided (paper's rule)"] == ["-2.00 [-2.00, -2.00], 3/3"] * 3
     # the test-split tables keep the test results (Ours +5 points over none on every seed there)
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
@@ -748,7 +749,7 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
         return ReportConfig(
             experiment_config,
             seeds=[0, 1],
-            strategies=["none", "error_guided", "paper"],
+            strategies=["none", "error_guided"],
             callback_kwargs={"progress_bar": False},
             validation_repeats=1,
             jobs=jobs,
@@ -765,7 +766,7 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
     captured = capfd.readouterr()  # the children's file descriptors too
     assert "GPU available" not in captured.out + captured.err  # Lightning's log lines went to the fits' logs
     lines = captured.out.splitlines()
-    # 2 pretrainings + 2 x 2 fits ("paper" is the default's run, fitted once), one line each.
+    # 2 pretrainings + 2 x 2 fits, one line each.
     assert lines[0].startswith("report: 6 fits on 2 processes, 1 torch thread(s) each")
     done = [line for line in lines if " done in " in line]
     assert len(done) == 6 and done[-1].startswith("report: [6/6] seed ")
@@ -775,7 +776,7 @@ def test_a_parallel_report_equals_the_one_process_report_at_the_same_thread_coun
         assert sorted(p.name for p in logs.iterdir()) == ["error_guided.log", "none.log", "pretrain.log"]
         log = (logs / "error_guided.log").read_text()
         assert "epoch 1/2" in log and "GPU available" in log  # the fit's own output went to its log
-    for run in ("none", "error_guided", "paper"):
+    for run in ("none", "error_guided"):
         for seed in (0, 1):
             one, two = sequential["runs"][run][seed], parallel["runs"][run][seed]
             assert two["results"] == one["results"], (run, seed)

@@ -171,6 +171,8 @@ def test_a_selector_argument_given_as_class_path_is_built_and_a_bad_one_refused(
     bad = _write(
         tmp_path, f"soft:\n{ROW}  selector: error_guided\n  selector_kwargs: {{score: {{class_path: no.Such}}}}\n"
     )
-    with pytest.raises(StrategyFileError, match=r"row 'soft', selector_kwargs, score must be an importable class path .*'no.Such'") as error:
+    with pytest.raises(
+        StrategyFileError, match=r"row 'soft', selector_kwargs, score must be an importable class path .*'no.Such'"
+    ) as error:
         load_variants(bad)
     assert str(bad) in str(error.value)

@@ -131,9 +131,7 @@ def test_score_presets_and_overrides():
     assert released == ReleasedScore(mode="soft", mask="gt", reduction="mean", eps=0.0)
     custom = ErrorGuidedSelector.paper(score=ReleasedScore(mask="none", reduction="sum")).score_options
     assert (custom.mode, custom.mask, custom.reduction) == ("soft", "none", "sum")
-    with pytest.raises(
-        ValueError, match="`score` must be one of 'paper', 'released', 'visible', 'input', 'map', got 'area'"
-    ):
+    with pytest.raises(ValueError, match="`score` must be one of 'paper', 'released', 'visible', got 'area'"):
         ErrorGuidedSelector.paper(score="area")
     with pytest.raises(TypeError, match="reduction"):
         VisibleScore(reduction="mean")  # type: ignore[call-arg]

@@ -26,26 +26,34 @@ def _package_name(path: Path) -> str:
     return ".".join(["lightning_vtr", *path.parent.relative_to(PACKAGE_DIR).parts])
 
 
+def _type_checking_block(tree: ast.Module) -> ast.If:
+    return next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", None) == "TYPE_CHECKING")
+
+
 def _lazy_mapping(tree: ast.Module) -> dict[str, list[str]]:
-    """The literal mapping given to ``lazy_exports`` at module level."""
-    for node in tree.body:
+    """The literal mapping given to ``lazy_exports`` in the ``else:`` branch of ``if TYPE_CHECKING:``."""
+    for node in _type_checking_block(tree).orelse:
         call = node.value if isinstance(node, ast.Assign) else None
         if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "lazy_exports":
             return ast.literal_eval(call.args[1])
-    raise AssertionError("no `__getattr__, __dir__ = lazy_exports(__name__, {...})` at module level")
+    raise AssertionError("no `else: __getattr__, __dir__ = lazy_exports(__name__, {...})` after `if TYPE_CHECKING:`")
 
 
 def _type_checking_imports(tree: ast.Module) -> dict[str, list[str]]:
-    block = next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", None) == "TYPE_CHECKING")
+    block = _type_checking_block(tree)
     return {node.module: [a.name for a in node.names] for node in block.body if isinstance(node, ast.ImportFrom)}
 
 
 def _write_package(root: Path, name: str) -> None:
     (root / name).mkdir()
     (root / name / "__init__.py").write_text(
+        "from typing import TYPE_CHECKING\n"
         "from lightning_vtr.utils.exports import lazy_exports\n"
+        "if TYPE_CHECKING:\n"
+        f"    from {name}.heavy import VALUE\n"
+        "else:\n"
+        f"    __getattr__, __dir__ = lazy_exports(__name__, {{'{name}.heavy': ['VALUE']}})\n"
         "__all__ = ['VALUE']\n"
-        f"__getattr__, __dir__ = lazy_exports(__name__, {{'{name}.heavy': ['VALUE']}})\n"
     )
     (root / name / "heavy.py").write_text("VALUE = 42\n")
 
