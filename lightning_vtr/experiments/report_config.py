@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from lightning_vtr.experiments.config import ExperimentConfig, flag
 from lightning_vtr.experiments.strategies import STRATEGIES
+from lightning_vtr.utils.paths import join_under
 
 if TYPE_CHECKING:
     from lightning_vtr.experiments.strategies import StrategyVariant
@@ -295,7 +296,7 @@ class ReportConfig:
 
     def seed_config(self, seed: int) -> ExperimentConfig:
         """The :class:`~lightning_vtr.experiments.config.ExperimentConfig` of every run of ``seed``."""
-        return replace(self.experiment, seed=seed, out=str(Path(self.experiment.out) / f"seed_{seed}"))
+        return replace(self.experiment, seed=seed, out=str(join_under(self.experiment.out, f"seed_{seed}")))
 
 
 _VARIANTS_READ: dict[tuple[str | None, bool], dict[str, StrategyVariant]] = {}

@@ -54,6 +54,9 @@ def execute_runs(config: ReportConfig, runs: list[ReportRun]) -> ReportResults:
     Raises:
         RuntimeError: a fit of a parallel report failed (the message names it and its log).
     """
+    for seed in config.seeds:  # a folder of an earlier output that leads out of it is refused before any fit
+        for name in ("pretrain", "logs", *(run.name for run in runs)):
+            join_under(config.seed_config(seed).out, name)
     if config.jobs > 1:
         _run_in_parallel(config, runs)
     results = ReportResults(

@@ -36,6 +36,7 @@ from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 from lightning_vtr.models.registry import MODELS, check_model, model_class
 from lightning_vtr.selection import SELECTORS, make_selector
 from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_choice, check_int
 
 __all__ = [
@@ -429,13 +430,15 @@ def pretrain(config: ExperimentConfig) -> Path:
 
     Raises:
         ValueError: ``config.model`` is not in :data:`MODELS`.
+        lightning_vtr.utils.paths.UnsafePathError: ``<config.out>/pretrain`` resolves outside ``config.out`` (a
+            symlink leading out).
 
     Example::
 
         config = ExperimentConfig(pretrain_epochs=2, finetune_epochs=2, out="runs/demo")
         ckpt = pretrain(config)  # runs/demo/pretrain/pretrained.ckpt
     """
-    run_dir = Path(config.out) / "pretrain"
+    run_dir = join_under(config.out, "pretrain")
     ckpt = run_dir / "pretrained.ckpt"
     if ckpt.is_file():
         return ckpt
@@ -657,6 +660,8 @@ def run_strategy(
         ValueError: the run's cached ``results.json`` was written with another configuration (fields other than
             ``out``, ``accelerator``, ``devices`` and ``num_workers`` differ), ``name`` is not in
             :data:`VARIANTS` (without ``callback``), or ``config.model`` is not in :data:`MODELS`.
+        lightning_vtr.utils.paths.UnsafePathError: the run's directory resolves outside ``config.out`` (a symlink
+            leading out).
 
     Example::
 
@@ -664,7 +669,7 @@ def run_strategy(
         payload = run_strategy("random", config, pretrain(config))
         payload["results"]["spherical"]["iou@0.4"]
     """
-    run_dir = Path(config.out) / (run_name or name)
+    run_dir = join_under(config.out, run_name or name)
     result_file = run_dir / "results.json"
     if result_file.is_file():
         cached = json.loads(result_file.read_text())

@@ -51,6 +51,10 @@ _ROBUST = ["robustness", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/nowhere",
 _RULE = __import__("lightning_vtr.utils.paths").utils.paths.RULES
 _UNSAFE_DATA = ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/data", "--out", "{tmp}/out"]
 _KEY = "object key %r: "
+_LEADS_OUT = (
+    "{tmp}/%s: expected a path inside {tmp}/%s, found one that resolves to {tmp}/elsewhere (a name "
+    "with '..', an absolute name or a symlink that leads out); nothing was written there"
+)
 #: metadata.json cases, one per rule of a plain name: case -> (bad input, message after the file name).
 _UNSAFE_KEYS = {
     "dot": ("object key with `..`", _KEY % "chair/../../../outside/evil" + _RULE["dot"] + " (its part '..')"),
@@ -268,6 +272,24 @@ ROWS: list[Row] = [
         "{tmp}/out/views: expected a path inside {tmp}/out, found one that resolves to {tmp}/elsewhere (a name with "
         "'..', an absolute name or a symlink that leads out); nothing was written there", 1, "symlinked_out",
         inside="out", note="the writer's own check: every path it writes is joined with join_under"),
+    Row("robustness", "`--out` an earlier output whose `maps/<NAME>` folder is a symlink leading out",
+        ["robustness", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/data", "--out", "{tmp}/out", "--k", "90",
+         "--objects", "1", "--no-progress", "--device", "cpu"], _LEADS_OUT % ("out/maps/good", "out"), 1,
+        "symlinked_maps", absent=["out/index.html"], inside="out",
+        note="met when the maps are written, after the measurement; a NAME= label becomes a safe file stem"),
+    Row("predict", "(LightningCLI) `VoxelPredictionWriter`'s `output_dir` an earlier output whose view-set folder "
+        "is a symlink leading out", ["predict", "--config", "configs/pix2vox_tiny_vtr.yaml", "--data.root",
+        "{tmp}/data", "--trainer.callbacks+=lightning_vtr.export.VoxelPredictionWriter",
+        "--trainer.callbacks.output_dir={tmp}/out", "--trainer.accelerator=cpu", "--trainer.logger=false",
+        "--trainer.default_root_dir={tmp}/out"], (_LEADS_OUT % ("out/aligned/chair/chair_0001", "out"))
+        .replace("/elsewhere ", "/elsewhere/chair/chair_0001 "), 1, "symlinked_prediction",
+        absent=["out/index.html", "out/predictions.json"], inside="out"),
+    Row("report", "`--out` an earlier output whose `seed_0` folder is a symlink leading out",
+        ["report", "--out", "{tmp}/out", "--seeds", "0"], _LEADS_OUT % ("out/seed_0", "out"), 1, "symlinked_seed",
+        absent=["out/report.md"], inside="out", note="before the first fit"),
+    Row("report", "`--out` an earlier output whose `seed_0/pretrain` folder is a symlink leading out",
+        ["report", "--out", "{tmp}/out", "--seeds", "0"], _LEADS_OUT % ("out/seed_0/pretrain", "out/seed_0"), 1,
+        "symlinked_pretrain", absent=["out/report.md"], inside="out", note="before the first fit"),
 ]  # fmt: skip
 
 
@@ -423,7 +445,44 @@ def _symlinked_out(tmp: Path) -> None:
     (tmp / "out" / "views").symlink_to(tmp / "elsewhere", target_is_directory=True)
 
 
+def _tiny_data(tmp: Path) -> None:
+    """``data``: a ShapeNet-VTR dataset of 3 procedural chairs (one of them, ``chair/chair_0001``, in the test split)."""
+    from lightning_vtr.data.builder import build_dataset
+
+    build_dataset(tmp / "data", source="procedural", categories=["chair"], objects_per_category=3, image_size=64,
+                  resolution=32, views_per_set=3, progress=False)  # fmt: skip
+
+
+def _symlinked(tmp: Path, marker: str, link: str, data: bool = False) -> None:
+    """An earlier output (``out/<marker>``) whose folder ``out/<link>`` is a symlink to ``elsewhere``."""
+    if data:
+        _tiny_data(tmp)
+    (tmp / "out" / link).parent.mkdir(parents=True)
+    if marker:
+        (tmp / "out" / marker).write_text("")
+    (tmp / "elsewhere").mkdir()
+    (tmp / "out" / link).symlink_to(tmp / "elsewhere", target_is_directory=True)
+
+
+def _lightning_logs_to_stderr(mp: pytest.MonkeyPatch) -> None:
+    """Point the console log handlers at this test's ``sys.stderr``: a handler made in an earlier test (Lightning's,
+    on import) holds that test's captured stream, closed since (the Trainer's banner would print a logging error)."""
+    import logging
+
+    loggers = [
+        logging.getLogger(),
+        *(v for v in logging.Logger.manager.loggerDict.values() if isinstance(v, logging.Logger)),
+    ]
+    for handler in (h for logger in loggers for h in logger.handlers):
+        if isinstance(handler, logging.StreamHandler) and getattr(handler.stream, "closed", False):
+            mp.setattr(handler, "stream", sys.stderr)
+
+
 SETUPS = {
+    "symlinked_maps": lambda tmp, mp: _symlinked(tmp, "bins.csv", "maps/good", data=True),
+    "symlinked_prediction": lambda tmp, mp: (_symlinked(tmp, "", "aligned", data=True), _lightning_logs_to_stderr(mp)),
+    "symlinked_seed": lambda tmp, mp: _symlinked(tmp, "", "seed_0"),
+    "symlinked_pretrain": lambda tmp, mp: _symlinked(tmp, "", "seed_0/pretrain"),
     **{f"unsafe:{case}": (lambda tmp, mp, case=case: _unsafe_meta(tmp, case)) for case in _UNSAFE_OBJECTS},
     "unsafe_mesh": lambda tmp, mp: _unsafe_mesh(tmp),
     "unsafe_folder": lambda tmp, mp: _unsafe_folder(tmp),
@@ -474,7 +533,7 @@ class NoSteps(L.LightningModule):
 """
 _NOT_A_SELECTOR = "mine:\n  title: Mine\n  description: d\n  selector: {class_path: usermodel_bad.NoSteps}\n"
 _NO_MODULE = "mine:\n  title: Mine\n  description: d\n  selector:\n    class_path: nosuchmodule.Sel\n"
-_SHIPPED_TITLE = "mine:\n  title: Ours\n  description: d\n  selector: random\n"
+_SHIPPED_TITLE = "mine:\n  title: Nature\n  description: d\n  selector: random\n"
 
 
 def _user_files(tmp: Path, mp: pytest.MonkeyPatch) -> None:
@@ -529,7 +588,7 @@ ROWS += [
         "'nosuchmodule.Sel': module 'nosuchmodule' not found (run from the folder holding nosuchmodule.py, or "
         "install it)", 1, "user_files"),
     Row("report", "`--strategies-file` row with a shipped row's title", ["report", "--strategies-file",
-        "{tmp}/title.yaml"], "{tmp}/title.yaml: title(s) 'Ours' repeat a shipped row's; choose another title, or "
+        "{tmp}/title.yaml"], "{tmp}/title.yaml: title(s) 'Nature' repeat a shipped row's; choose another title, or "
         "use the shipped row's name to replace it", 1, "user_files"),
 ]  # fmt: skip
 
