@@ -53,16 +53,16 @@ def test_example_prints_the_table_of_its_runs(tiny_dataset, tmp_path, capsys, na
     runs = _load(name).main(argv)
     printed = capsys.readouterr().out
 
-    assert list(runs) == [f"{title} (no VTR)", f"Ours ({title})"]
-    # "Ours" is the callback's default rule
-    for run_dir, row in (("none", f"{title} (no VTR)"), (DEFAULT_STRATEGY, f"Ours ({title})")):
+    assert list(runs) == [f"{title} (no VTR)", f"{title} + VTR (default rule)"]
+    # the second row is the callback's default rule
+    for run_dir, row in (("none", f"{title} (no VTR)"), (DEFAULT_STRATEGY, f"{title} + VTR (default rule)")):
         saved = json.loads((out / run_dir / "results.json").read_text())
         assert saved["results"] == runs[row]["results"]
         assert saved["config"]["finetune_lr"] == "cosine"
         line = next(line for line in printed.splitlines() if line.startswith(f"| {row} |"))
         assert f"{100 * saved['results']['spherical']['iou@0.4']:.2f}" in line
     # Two selections (before epoch 0 and after it) of 15 % of the 21 training objects; the baseline generates nothing.
-    assert runs[f"Ours ({title})"]["generated_samples"] == 2 * round(0.15 * 21)
+    assert runs[f"{title} + VTR (default rule)"]["generated_samples"] == 2 * round(0.15 * 21)
     assert runs[f"{title} (no VTR)"]["generated_samples"] == 0
     _assert_no_lightning_test_table(printed)
 

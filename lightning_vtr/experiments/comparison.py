@@ -88,7 +88,7 @@ def compare(config: ExperimentConfig, *, synthesizer: Any = None) -> dict[str, d
         synthesizer: the callback's synthesizer (``None``: mesh rendering).
 
     Returns:
-        ``{"<Model> (no VTR)": payload, "Ours (<Model>)": payload}``, each the run's ``results.json``.
+        ``{"<Model> (no VTR)": payload, "<Model> + VTR (default rule)": payload}``, each the run's ``results.json``.
 
     Raises:
         ValueError: ``config.model`` has no title in :data:`MODEL_TITLES`, or a cached run under ``config.out``
@@ -104,7 +104,7 @@ def compare(config: ExperimentConfig, *, synthesizer: Any = None) -> dict[str, d
     print(f"pretrained on Aligned: {ckpt} ({time.perf_counter() - start:.0f} s)")
     runs = {
         f"{title} (no VTR)": run_strategy("none", config, ckpt),
-        f"Ours ({title})": run_strategy(DEFAULT_STRATEGY, config, ckpt, synthesizer=synthesizer),
+        f"{title} + VTR (default rule)": run_strategy(DEFAULT_STRATEGY, config, ckpt, synthesizer=synthesizer),
     }
     print()
     print(format_robustness_table({k: v["results"] for k, v in runs.items()}))

@@ -33,3 +33,7 @@ def tiny_dataset(tmp_path_factory):
         progress=False,
     )
     return root
+
+
+# the robustness-map tests' dataset fixtures, shared with tests/evaluation
+from robustness_fixtures import dataset_root, objects  # noqa: E402, F401

@@ -40,8 +40,8 @@ def test_run_comparison_fine_tunes_without_and_with_the_callback_and_prints_both
     args = _parse("lrgt", ["--devices", "2", "--pretrain-epochs", "3", "--out", str(tmp_path), "--fraction", "0.1"])
     runs = comparison.run_comparison(args, "lrgt", lr=0.01)
 
-    assert list(runs) == ["LRGT (no VTR)", "Ours (LRGT)"]
-    assert [s[0] for s in seen] == ["none", DEFAULT_STRATEGY]  # Ours: the callback's default rule
+    assert list(runs) == ["LRGT (no VTR)", "LRGT + VTR (default rule)"]
+    assert [s[0] for s in seen] == ["none", DEFAULT_STRATEGY]  # the callback's default rule
     config = seen[0][1]
     assert config == ExperimentConfig(
         model="lrgt",
@@ -56,4 +56,4 @@ def test_run_comparison_fine_tunes_without_and_with_the_callback_and_prints_both
     assert seen[1][1] is config and seen[0][2] == seen[1][2] == tmp_path / "pre.ckpt"
     printed = capsys.readouterr().out
     assert "| LRGT (no VTR) | 50.00 | 25.00 | - | - | - | - |" in printed
-    assert "| Ours (LRGT) | 62.50 | 25.00 | - | - | - | - |" in printed
+    assert "| LRGT + VTR (default rule) | 62.50 | 25.00 | - | - | - | - |" in printed

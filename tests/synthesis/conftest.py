@@ -14,6 +14,8 @@ from types import SimpleNamespace
 os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
 
+import sys
+
 import pytest
 import torch
 from torch import nn
@@ -24,50 +26,19 @@ TINY_CROSS_DIM = 32
 
 
 def build_tiny_components(seed: int = 0) -> dict:
-    """A randomly initialised UNet / VAE / CLIP vision encoder / 36->32 projection / DDIM scheduler."""
-    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
-    from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+    """A randomly initialised UNet / VAE / CLIP vision encoder / 36->32 projection / DDIM scheduler: the tiny
+    architecture ``benchmarks/gpu_check.py`` also runs on a GPU (one definition, loaded from that script)."""
+    import importlib.util
+    from pathlib import Path
 
-    from lightning_vtr.synthesis.zero123_checkpoint import REFERENCE_DDIM
-
-    torch.manual_seed(seed)
-    unet = UNet2DConditionModel(
-        sample_size=8,
-        in_channels=8,
-        out_channels=4,
-        block_out_channels=(32, 64),
-        layers_per_block=1,
-        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-        cross_attention_dim=TINY_CROSS_DIM,
-        attention_head_dim=8,
-        norm_num_groups=8,
-    )
-    vae = AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        down_block_types=("DownEncoderBlock2D",) * 4,
-        up_block_types=("UpDecoderBlock2D",) * 4,
-        block_out_channels=(8, 8, 16, 16),
-        latent_channels=4,
-        norm_num_groups=8,
-        layers_per_block=1,
-        sample_size=64,
-    )
-    image_encoder = CLIPVisionModelWithProjection(
-        CLIPVisionConfig(
-            hidden_size=32,
-            intermediate_size=37,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            image_size=224,
-            patch_size=32,
-            projection_dim=TINY_CLIP_DIM,
-        )
-    )
-    projection = nn.Linear(TINY_CLIP_DIM + 4, TINY_CROSS_DIM)
-    scheduler = DDIMScheduler(**REFERENCE_DDIM)
-    return dict(unet=unet, vae=vae, image_encoder=image_encoder, projection=projection, scheduler=scheduler)
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_check.py"
+    spec = importlib.util.spec_from_file_location("_gpu_check_tiny_zero123", script)
+    assert spec is not None and spec.loader is not None
+    module = sys.modules.get(spec.name)
+    if module is None:  # registered before it runs: its dataclasses look their module up there
+        module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return module.tiny_zero123_components(seed)
 
 
 def half_copy(components: dict) -> dict:
