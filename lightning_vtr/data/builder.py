@@ -48,7 +48,6 @@ import multiprocessing as mp
 import os
 import time
 import warnings
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +69,7 @@ from lightning_vtr.data.format import (
     read_object_json,
 )
 from lightning_vtr.data.mesh import MESH_EXTENSIONS
+from lightning_vtr.data.splits import empty_split_warning, split_objects, stable_int
 from lightning_vtr.geometry import sample_uniform_viewpoints, wrap_yaw
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.io import atomic_write, remove_stale_temporaries
@@ -158,11 +158,6 @@ class BuildReport:
         return "\n".join(lines)
 
 
-def _stable_int(*parts: Any) -> int:
-    # crc32 rather than hash(): str hashes are salted per process, and shards/workers must agree.
-    return zlib.crc32("/".join(str(p) for p in parts).encode())
-
-
 def view_set_viewpoints(
     category: str, object_id: str, *, views_per_set: int = 24, aligned_pitch: float = 30.0, seed: int = 0
 ) -> dict[str, np.ndarray]:
@@ -171,7 +166,7 @@ def view_set_viewpoints(
     Returns:
         ``{"aligned" | "hemispherical" | "spherical": (views_per_set, 2)}`` float64 (yaw, pitch) in degrees.
     """
-    g = torch.Generator().manual_seed(_stable_int(seed, category, object_id))
+    g = torch.Generator().manual_seed(stable_int(seed, category, object_id))
     yaw = wrap_yaw(torch.arange(views_per_set, dtype=torch.float64) * (360.0 / views_per_set))
     aligned = torch.stack([yaw, torch.full_like(yaw, float(aligned_pitch))], dim=-1)
     hemi = sample_uniform_viewpoints(views_per_set, mode="area", pitch_range=(0.0, 90.0), generator=g)
@@ -199,7 +194,7 @@ def pix3d_viewpoints(
     Returns:
         ``(views_per_object, 2)`` float64 (yaw, pitch) in degrees.
     """
-    g = torch.Generator().manual_seed(_stable_int(seed, category, object_id, PIX3D_VIEW_SET))
+    g = torch.Generator().manual_seed(stable_int(seed, category, object_id, PIX3D_VIEW_SET))
     vp = sample_uniform_viewpoints(
         views_per_object, mode="angle", pitch_range=cast("tuple[float, float]", tuple(pitch_range)), generator=g
     )
@@ -381,61 +376,6 @@ def _build_object(args: tuple[_Task, dict[str, Any], str]) -> tuple[str, str | N
         with contextlib.suppress(OSError):  # the report still carries the message
             atomic_write_json(directory / "error.json", {"key": task.key, "source": task.path, "error": message})
         return task.key, message
-
-
-#: The fewest objects a category needs for one validation and one test object besides its training objects.
-MIN_OBJECTS_FOR_SPLITS = 3
-
-
-def _split_counts(n: int, ratios: Sequence[float]) -> list[int]:
-    """``[train, val, test]`` object counts of a category of ``n`` objects split ``ratios``.
-
-    The counts are the rounded ratios, except that with at least :data:`MIN_OBJECTS_FOR_SPLITS` objects a
-    validation or test split with a positive ratio that rounds to 0 objects takes one object from the
-    largest other split (train on ties). Counts that give both at least one object are the rounded ones.
-    """
-    counts = [round(ratios[0] * n), round(ratios[1] * n)]
-    counts.append(n - sum(counts))
-    if n >= MIN_OBJECTS_FOR_SPLITS:
-        for part in (1, 2):
-            if ratios[part] > 0 and counts[part] == 0:
-                donor = max((i for i in range(3) if counts[i] > 1), key=lambda i: (counts[i], -i))
-                counts[donor] -= 1
-                counts[part] += 1
-    return counts
-
-
-def _splits(keys: list[tuple[str, str]], ratios: Sequence[float], seed: int) -> dict[str, dict[str, list[str]]]:
-    """Split each category's objects ``ratios`` (train, val, test) with a permutation seeded per category
-    (counts from :func:`_split_counts`)."""
-    out: dict[str, dict[str, list[str]]] = {}
-    for category in sorted({c for c, _ in keys}):
-        ids = sorted(o for c, o in keys if c == category)
-        order = np.random.default_rng([seed, _stable_int(category)]).permutation(len(ids))
-        n_train, n_val, _ = _split_counts(len(ids), ratios)
-        shuffled = [ids[i] for i in order]
-        out[category] = {
-            "train": sorted(shuffled[:n_train]),
-            "val": sorted(shuffled[n_train : n_train + n_val]),
-            "test": sorted(shuffled[n_train + n_val :]),
-        }
-    return out
-
-
-def _empty_split_warning(splits: dict[str, dict[str, list[str]]], ratios: Sequence[float]) -> str | None:
-    """One line naming the categories left without a validation or test object their ratio asks for."""
-    short = []
-    for category, parts in sorted(splits.items()):
-        empty = [name for name, ratio in zip(("val", "test"), ratios[1:]) if ratio > 0 and not parts[name]]
-        if empty:
-            total = sum(len(ids) for ids in parts.values())
-            short.append(f"{category} ({total} objects, no {' or '.join(empty)})")
-    if not short:
-        return None
-    return (
-        f"build_dataset: too few objects for a validation and a test object (a category needs at least "
-        f"{MIN_OBJECTS_FOR_SPLITS}): {', '.join(short)}; build more objects of these categories"
-    )
 
 
 def _check_args(
@@ -701,8 +641,8 @@ def _finalize(
             complete.append((t.category, t.object_id))
         elif t.key not in errors:
             return False  # another shard is still working on it
-    splits = _splits(complete, split, seed)
-    message = _empty_split_warning(splits, split)
+    splits = split_objects(complete, split, seed)
+    message = empty_split_warning(splits, split)
     if message:
         warnings.warn(message, UserWarning, stacklevel=3)
     atomic_write_json(out / "splits.json", splits)

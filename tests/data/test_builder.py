@@ -110,7 +110,7 @@ def test_split_is_7_1_2_per_category_and_shard_independent(tiny_dataset):
         assert [len(parts[s]) for s in ("train", "val", "test")] == [7, 1, 2]
         for s, ids in parts.items():
             assert all(meta["objects"][f"{category}/{i}"]["split"] == s for i in ids)
-    from lightning_vtr.data.builder import _splits
+    from lightning_vtr.data.splits import split_objects as _splits
 
     keys = [tuple(k.split("/")) for k in meta["objects"]]
     assert _splits(keys, (0.7, 0.1, 0.2), 0) == splits  # a pure function of the ids and the seed

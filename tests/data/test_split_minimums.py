@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from lightning_vtr.data.builder import MIN_OBJECTS_FOR_SPLITS, _split_counts, build_dataset
+from lightning_vtr.data.builder import build_dataset
 from lightning_vtr.data.format import load_metadata
+from lightning_vtr.data.splits import MIN_OBJECTS_FOR_SPLITS, split_counts
 
 TINY = dict(image_size=16, resolution=16, views_per_set=2, progress=False)
 RATIOS = [(0.7, 0.1, 0.2), (0.8, 0.1, 0.1), (0.2, 0.2, 0.6), (0.45, 0.45, 0.1), (0.9, 0.05, 0.05)]
@@ -37,7 +38,7 @@ def test_rounded_counts_are_kept_wherever_they_give_both(ratios):
     for n in range(1, 60):
         rounded = [round(ratios[0] * n), round(ratios[1] * n)]
         rounded.append(n - sum(rounded))
-        counts = _split_counts(n, ratios)
+        counts = split_counts(n, ratios)
         assert sum(counts) == n and min(counts) >= 0
         if rounded[1] >= 1 and rounded[2] >= 1:
             assert counts == rounded, n  # the embedded dataset's 17 / 2 / 5 of 24 among them
@@ -46,8 +47,8 @@ def test_rounded_counts_are_kept_wherever_they_give_both(ratios):
 
 
 def test_a_zero_ratio_stays_empty():
-    assert _split_counts(4, (1.0, 0.0, 0.0)) == [4, 0, 0]
-    assert _split_counts(4, (0.8, 0.2, 0.0)) == [3, 1, 0]
+    assert split_counts(4, (1.0, 0.0, 0.0)) == [4, 0, 0]
+    assert split_counts(4, (0.8, 0.2, 0.0)) == [3, 1, 0]
 
 
 def test_too_few_objects_warn_naming_the_category(tmp_path):
