@@ -87,6 +87,7 @@ def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.T
     kw.setdefault("reload_dataloaders_every_n_epochs", 1)
     kw.setdefault("devices", 1)
     kw.setdefault("num_sanity_val_steps", 1)
+    kw.setdefault("limit_train_batches", 2)
     return L.Trainer(
         max_epochs=epochs,
         accelerator="cpu",
@@ -95,7 +96,6 @@ def make_trainer(tmp_path: Path, epochs: int, callbacks: list, **kw: Any) -> L.T
         logger=False,
         enable_progress_bar=False,
         enable_model_summary=False,
-        limit_train_batches=2,
         limit_val_batches=1,
         **kw,
     )

@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from cuda_autocast import CudaAutocastRules, cuda_autocast_rules
-from helpers import one_thread
+from helpers import make_trainer, one_thread
 from lightning.pytorch.plugins.precision import MixedPrecision
 
 from lightning_vtr.callback import ErrorGuidedViewAugmentation
@@ -242,20 +242,14 @@ def test_fit_with_the_callback_under_cuda_rules(tiny_dataset, tmp_path, model_cl
     dm = VTRDataModule(
         str(tiny_dataset), image_size=model.image_size, batch_size=2, generated_dir=str(tmp_path / "gen")
     )
-    trainer = L.Trainer(
-        max_epochs=1,
-        accelerator="cpu",
+    trainer = make_trainer(
+        tmp_path,
+        1,
+        [callback],
         plugins=[precision_plugin],
-        callbacks=[callback],
-        default_root_dir=str(tmp_path),
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
         enable_checkpointing=False,
         limit_train_batches=1,
-        limit_val_batches=1,
         num_sanity_val_steps=0,
-        reload_dataloaders_every_n_epochs=1,
     )
     trainer.fit(model, datamodule=dm)
     # the forwards (training, validation, the callback's predictions) ran under CUDA's rules
