@@ -223,10 +223,13 @@ def export_prediction(
         paths["mesh"]  # Path('predictions/chair/1a2b/prediction.ply')
     """
     directory = Path(directory)
-    paths = {"binvox": export_binvox(join_under(directory, f"{name}.binvox"), voxels, threshold)}
+    # the files are replaced whole (utils.io), never written through a link an earlier output left there
+    paths = {"binvox": export_binvox(join_under(directory, f"{name}.binvox", replace_link=True), voxels, threshold)}
     if mesh_format is not None:
         check_choice("mesh_format", mesh_format, MESH_FORMATS)
-        paths["mesh"] = export_mesh(join_under(directory, f"{name}.{mesh_format}"), voxels, threshold)
+        paths["mesh"] = export_mesh(
+            join_under(directory, f"{name}.{mesh_format}", replace_link=True), voxels, threshold
+        )
     if sheet is not None:
         paths["sheet"] = save_png(directory / "sheet.png", sheet)
     return paths

@@ -135,3 +135,83 @@ def test_predict_refuses_an_empty_image_folder_before_loading_the_model(tmp_path
     )
     assert capsys.readouterr().err == message
     assert not out.exists()  # nothing was written for the first folder either
+
+
+# ------------------------------------------------------------------------------------ untrusted names and files
+def _one_object_dataset(root, category="chair", object_id="c0", split="test"):
+    """A dataset of one object with 3 aligned 16-px views and a 32^3 grid (``dataset-info`` and ``--verify``)."""
+    from PIL import Image
+
+    from lightning_vtr.data.binvox import write_binvox
+
+    views = [[0.0, 30.0], [120.0, 30.0], [-120.0, 30.0]]
+    directory = root / "objects" / category / object_id
+    (directory / "aligned").mkdir(parents=True)
+    for i in range(3):
+        Image.new("RGBA", (16, 16)).save(directory / "aligned" / f"{i:02d}.png")
+    write_binvox(directory / "model.binvox", np.zeros((32, 32, 32), bool))
+    obj = {"category": category, "object_id": object_id, "views": {"aligned": views}}
+    (directory / "object.json").write_text(json.dumps(obj))
+    key = f"{category}/{object_id}"
+    meta = {"format": FORMAT_NAME, "version": 1, "resolution": 32, "image_size": 16, "views_per_set": 3,
+            "view_sets": ["aligned"], "objects": {key: {"split": split, "views": {"aligned": views}}}}  # fmt: skip
+    (root / "metadata.json").write_text(json.dumps(meta))
+    (root / "splits.json").write_text(json.dumps({category: {"train": [], "val": [], "test": [object_id]}}))
+    return root
+
+
+def test_dataset_info_escapes_a_category_holding_an_ansi_escape_sequence(tmp_path, capsys):
+    root = _one_object_dataset(tmp_path / "data", category="evil\x1b[2J\x1b[31m")
+    assert main(["dataset-info", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out
+    assert "  evil\\x1b[2J\\x1b[31m       0      0      1      1" in out.splitlines()
+
+
+def test_verify_lists_a_splits_category_holding_a_list_and_an_image_linking_out(tmp_path):
+    from lightning_vtr.data.verify import verify_dataset
+
+    root = _one_object_dataset(tmp_path / "data")
+    (root / "splits.json").write_text(json.dumps({"chair": ["c0"]}))
+    secret = tmp_path / "secret.png"
+    image = root / "objects" / "chair" / "c0" / "aligned" / "01.png"
+    secret.write_bytes(image.read_bytes())
+    image.unlink()
+    image.symlink_to(secret)
+    problems = [(p.path, p.kind, p.message) for p in verify_dataset(root, workers=1, progress=False).problems]
+    assert problems == [
+        (
+            root / "splits.json",
+            "unreadable",
+            "splits.json must map categories to {split: [object ids]}; category 'chair' holds a list",
+        ),
+        (image, "outside", f"a symlink leading out of the dataset, to {secret}; not read"),
+    ]
+
+
+def test_dataset_info_verify_lists_a_bad_split_instead_of_stopping(tmp_path, capsys):
+    root = _one_object_dataset(tmp_path / "data", split="evil")
+    assert main(["dataset-info", str(root), "--verify", "--workers", "1", "--no-progress"]) == 1
+    out = capsys.readouterr().out
+    assert "  1 object entry(ies) not a JSON object or without a valid split (not counted)" in out
+    assert "PROBLEM [metadata] " in out and "object 'chair/c0' has an unknown split" in out
+
+
+def test_csv_cells_a_spreadsheet_would_run_are_written_as_text_and_read_back(tmp_path):
+    import csv
+
+    from lightning_vtr.evaluation.robustness import RobustnessMap, read_bins_csv
+    from lightning_vtr.utils.io import csv_cell, uncsv_cell
+
+    ids = ["=HYPERLINK(\"http://x\",\"y\")", "+1+cmd", "@SUM(A1)", "\tx", "'=already", "plain"]
+    rmap = RobustnessMap.from_iou(np.full((6, 18), -0.5), k=60, object_ids=ids, categories=["=c"] * 6)
+    rmap.to_csv(tmp_path, per_category=True)
+    with open(tmp_path / "objects.csv", newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    assert [row[1] for row in rows] == ["'" + i for i in ids[:5]] + ["plain"]
+    assert {row[0] for row in rows} == {"'=c"} and rows[0][2] == "-0.5"  # a negative number stays a number
+    again = RobustnessMap.from_csv(tmp_path)
+    assert again.object_ids == ids and again.categories == ["=c"] * 6
+    assert {row["category"] for row in read_bins_csv(tmp_path / "bins.csv")} == {"all", "=c"}
+    assert [csv_cell(v) for v in ("-1e-3", "-inf", "-x", 3)] == ["-1e-3", "-inf", "'-x", 3]
+    assert [uncsv_cell(csv_cell(v)) for v in ids] == ids

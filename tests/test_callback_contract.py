@@ -169,12 +169,19 @@ def test_resume_with_another_rule_warns_naming_both_and_starts_fresh(tiny_datase
     dm = make_datamodule(tiny_dataset, run_dir)
     other = make_callback(fraction=0.15, seed=0, max_samples=2)  # the default rule, same selector class: same key
     assert other.state_key == callback.state_key
-    with pytest.warns(UserWarning, match="belongs to the rule") as caught:
+    with pytest.warns(UserWarning, match="belongs to another rule") as caught:
         make_trainer(tmp_path, 2, [other]).fit(TinyUserModel(), datamodule=dm, ckpt_path=ckpt)
-    message = next(str(w.message) for w in caught if "belongs to the rule" in str(w.message))
-    assert "ErrorGuidedSelector(" in message and "score" in message
-    assert "search_fraction (0.15 in the checkpoint, 0.35 now)" in message
-    assert "'refresh': False" in message and "Starting this callback's state fresh" in message
+    message = next(str(w.message) for w in caught if "belongs to another rule" in str(w.message))
+    # one line per effective difference (the paper's rule against the default one), nothing else
+    assert [line for line in message.splitlines() if line.startswith("  ")] == [
+        "  ErrorGuidedSelector.score: 'paper' in the checkpoint, 'visible' now",
+        "  ErrorGuidedSelector.reduction: 'sum' in the checkpoint, not set now",  # mask='none', eps=0.0: no lines
+        "  ErrorGuidedSelector.min_separation: None in the checkpoint, 30.0 now",
+        "  ErrorGuidedSelector.temperature: None in the checkpoint, 10.0 now",
+        "  search_fraction: 0.15 in the checkpoint, 0.35 now",
+        "  pool.refresh: False in the checkpoint, True now",
+    ]
+    assert message.splitlines()[-2].startswith("Starting this callback's state fresh (empty pool, no history)")
     # nothing of the paper rule's state was loaded: the pool and history hold only the caught-up round of epoch 0
     assert [h["epoch"] for h in other.history] == [0] and callback.history[0]["epoch"] == -1
     assert len(other.pool) == round(0.35 * 21)

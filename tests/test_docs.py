@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,3 +118,88 @@ def test_the_site_names_no_temporary_folder():
     for path in sorted(DOCS.rglob("*.md")):
         text = path.read_text(encoding="utf-8")
         assert "/tmp/" not in text, f"{path.relative_to(ROOT)} names a temporary folder (/tmp/)"
+
+
+def _hook():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gen_cli", DOCS / "gen_cli.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    return hook
+
+
+def _listed_options(help_text: str) -> set[str]:
+    """The options a ``--help`` text lists: the option strings at the start of its entries (``  -c X, --config X``)."""
+    options = set()
+    for line in help_text.splitlines():
+        if re.match(r"^  -", line):
+            entry = re.split(r"\s{2,}", line.strip(), maxsplit=1)[0]  # the option strings, before the description
+            options |= set(re.findall(r"(?:^|, )(--?[\w.+-]+)", entry))
+    return options
+
+
+def _live_options() -> dict[str, set[str]]:
+    """Each sub-command's options, read from the live parsers' actions (hidden ones left out)."""
+    import argparse
+
+    from lightning_vtr.cli import build_parser
+    from lightning_vtr.cli.dispatch import LIGHTNING_COMMANDS
+    from lightning_vtr.cli.lightning import VTRLightningCLI
+
+    def shown(parser) -> set[str]:
+        return {s for a in parser._actions for s in a.option_strings if a.help != argparse.SUPPRESS}
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    options = {name: shown(parser) for name, parser in sub.choices.items() if name not in LIGHTNING_COMMANDS}
+
+    class _Parsed(Exception):
+        pass
+
+    class _ParserOnly(VTRLightningCLI):
+        def parse_arguments(self, parser, args) -> None:
+            options.update(
+                {name: shown(parser._subcommands_action._name_parser_map[name]) for name in LIGHTNING_COMMANDS}
+            )
+            raise _Parsed
+
+    with pytest.raises(_Parsed):  # stopped once the parser is built, before anything is instantiated
+        _ParserOnly(args=["fit"], parser_kwargs={"exit_on_error": False})
+    return options
+
+
+def test_the_command_line_page_lists_exactly_each_commands_options():
+    # the page the site builds: docs/cli.md with the hook's sections, one per sub-command
+    from types import SimpleNamespace
+
+    page = SimpleNamespace(file=SimpleNamespace(src_uri="cli.md"))
+    source = (DOCS / "cli.md").read_text(encoding="utf-8")
+    rendered = _hook().on_page_markdown(source, page, {"docs_dir": str(DOCS)}, None)
+    sections = dict(re.findall(r"^## (\S+)\n\n.*?\n\n```text\n(.*?)\n```", rendered, flags=re.M | re.S))
+    live = _live_options()
+    assert set(sections) == set(live), f"the page has sections {sorted(sections)}, the command {sorted(live)}"
+    for name, text in sections.items():
+        listed = _listed_options(text)
+        assert listed == live[name], (
+            f"`lightning-vtr {name}`: the page lists {sorted(listed - live[name])} that the parser lacks and lacks "
+            f"{sorted(live[name] - listed)}"
+        )
+    assert {"--trainer.max_epochs", "--ckpt_path", "--model", "--data.image_size"} <= live["fit"]
+    assert {"--ckpt", "--data", "--out"} <= live["robustness"] and "--scores" not in live["robustness"]
+
+
+def test_the_option_reader_finds_each_entrys_options():
+    text = (
+        "usage: x [-h]\n\noptions:\n  -h, --help            show this help\n  -c CONFIG, --config CONFIG\n"
+        "                        a config; see --other\n  --trainer.callbacks CALLBACKS, --trainer.callbacks+ CALLBACKS\n"
+        "  --ckpt [NAME=]CKPT    a checkpoint (--not-this)\n"
+    )
+    assert _listed_options(text) == {
+        "-h",
+        "--help",
+        "-c",
+        "--config",
+        "--trainer.callbacks",
+        "--trainer.callbacks+",
+        "--ckpt",
+    }

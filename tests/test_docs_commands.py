@@ -21,7 +21,9 @@ How each is parsed:
 * ``python examples/NAME.py ...``: the example's own ``parse_args(argv)``; an example without one takes no
   arguments.
 
-Placeholders in capitals (``OUT``, ``ROOT``, ``DATASET``) are plain values to argparse and stay as written.
+Placeholders in capitals (``OUT``, ``ROOT``, ``DATASET``) are plain values to argparse and stay as written. A
+Python block the docs tell the reader to save (``<!-- file: mymodel.py -->`` on the line before it) is saved so,
+in a folder on ``sys.path``, so that ``--model mymodel.MyVoxelNet`` resolves as it does in the reader's folder.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ _FENCE = re.compile(r"^\s*```+\s*(?P<lang>[\w+-]*)")
 _SHELL_LANGS = {"", "bash", "sh", "shell", "console", "text", "zsh"}
 _SPAN = re.compile(r"(?<!`)`(?P<code>(?:lightning-vtr|python examples/)[^`]*)`(?!`)")
 _OPERATORS = {"&&", "||", "|", ";", "&", ">", ">>", "<", "2>", "2>&1"}
+_FILE_MARKER = re.compile(r"^\s*<!--\s*file:\s*(?P<name>\w+\.py)\s*-->\s*$")
 
 
 @dataclass(frozen=True)
@@ -117,6 +120,35 @@ def doc_commands(path: Path) -> list[Command]:
 
 
 COMMANDS = [command for path in DOC_FILES for command in doc_commands(path)]
+
+
+def doc_files(path: Path) -> dict[str, str]:
+    """The Python blocks of ``path`` that the page has the reader save as a file: file name -> code."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    files = {}
+    for i, line in enumerate(lines):
+        marker = _FILE_MARKER.match(line)
+        if marker:
+            assert lines[i + 1].strip() == "```python", f"{path}:{i + 1}: a file marker must precede a python block"
+            end = next(j for j in range(i + 2, len(lines)) if lines[j].strip() == "```")
+            files[marker.group("name")] = "\n".join(lines[i + 2 : end]) + "\n"
+    return files
+
+
+@pytest.fixture(scope="module")
+def saved_doc_files(tmp_path_factory):
+    """The docs' files (:func:`doc_files`) saved in a folder on ``sys.path``, as in the reader's working folder."""
+    import sys
+
+    folder = tmp_path_factory.mktemp("reader")
+    files = {name: code for path in DOC_FILES for name, code in doc_files(path).items()}
+    for name, code in files.items():
+        (folder / name).write_text(code, encoding="utf-8")
+    sys.path.insert(0, str(folder))
+    yield files
+    sys.path.remove(str(folder))
+    for name in files:
+        sys.modules.pop(name.removesuffix(".py"), None)
 
 
 def _package_parser() -> argparse.ArgumentParser:
@@ -251,6 +283,10 @@ def test_a_stale_option_fails():
         parse(("lightning-vtr", "fit", "--config", "CONFIG", "--trainer.no_such_option", "1"))
 
 
+def test_the_docs_files_are_found():
+    assert "mymodel.py" in doc_files(ROOT / "docs" / "guide" / "models.md")
+
+
 @pytest.mark.parametrize("command", COMMANDS, ids=[command.name for command in COMMANDS])
-def test_documented_command_parses(command):
+def test_documented_command_parses(command, saved_doc_files):
     parse(command.words, fragment=command.inline)

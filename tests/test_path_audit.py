@@ -13,6 +13,11 @@ that is neither a module constant nor a table of paths, an attribute named like 
 of any of these. A join written as ``join_under(root, name)`` is not a ``/`` and is never flagged. Every
 flagged place either goes away (use ``join_under``) or is listed in :data:`ALLOWED` with the reason it is safe;
 an entry that no longer matches anything fails the audit too, so the list stays true.
+
+A second audit finds every raw write (``open(..., "w")``, ``os.open``, ``.write_text``, ``savefig(path)``,
+``Image.save(path)``, ``torch.save``, ``os.replace``, copies and links, ...) outside ``lightning_vtr.utils.io``:
+each follows a symlink planted at its path, so it must go through that module's helpers, or be listed in
+:data:`ALLOWED_WRITES` with the reason it is safe.
 """
 
 from __future__ import annotations
@@ -222,3 +227,146 @@ def test_writers_under_a_user_folder_call_join_under():
         if "join_under" not in calls:
             missing.append(qualname)
     assert missing == []
+
+
+# ------------------------------------------------------------------------------ every write goes through utils.io
+#: The one module that may open files for writing, rename and replace them (``lightning_vtr.utils.io``).
+WRITE_HELPER = "lightning_vtr.utils.io"
+#: Calls that write a file at a path they are given: a write ``open``, ``os.open``, ``Path.write_text`` /
+#: ``write_bytes``, matplotlib's ``savefig``, PIL's / numpy's / torch's ``save``, trimesh's ``export``, copies,
+#: moves and links. Each one outside :data:`WRITE_HELPER` follows a symlink planted at its path (or truncates
+#: a file in place), so it must go through the helper instead.
+RAW_WRITES = {
+    "write_text",
+    "write_bytes",
+    "savefig",
+    "save",
+    "savez",
+    "savez_compressed",
+    "savetxt",
+    "tofile",
+    "imwrite",
+    "export",
+    "save_checkpoint",
+    "copy",
+    "copy2",
+    "copyfile",
+    "copytree",
+    "move",
+    "rename",
+    "touch",
+    "symlink_to",
+    "hardlink_to",
+    "symlink",
+    "link",
+    "mkstemp",
+    "NamedTemporaryFile",
+}
+#: A write into one of these names writes into a file object (one that ``atomic_open`` / ``atomic_save`` opened,
+#: or an in-memory ``BytesIO``), not at a path.
+FILE_OBJECTS = {"f", "buffer", "buf", "stream", "handle", "fh"}
+
+#: ``module:function`` of a raw write outside the helper -> why it is safe.
+ALLOWED_WRITES: dict[str, str] = {
+    "lightning_vtr.experiments.training:pretrain": "Lightning's trainer.save_checkpoint writes the scratch "
+    "checkpoint itself; the line before removes whatever stood at that path, and the file is then copied "
+    "into place with atomic_write",
+}
+
+
+def _raw_write(node: ast.Call) -> bool:
+    """Whether ``node`` writes a file at a path without the helper (see :data:`RAW_WRITES`)."""
+    name = _call_name(node)
+    receiver = node.func.value if isinstance(node.func, ast.Attribute) else None
+    owner = receiver.id if isinstance(receiver, ast.Name) else ""
+    if name == "open":
+        if owner == "os":
+            return True
+        at = 1 if receiver is None or owner == "io" else 0  # open(path, mode) / io.open(...); path.open(mode)
+        modes = [*node.args[at : at + 1], *(k.value for k in node.keywords if k.arg == "mode")]
+        return any(
+            isinstance(m, ast.Constant) and isinstance(m.value, str) and set(m.value) & set("wax+") for m in modes
+        )
+    if name == "replace":  # os.replace; str.replace and dataclasses.replace are not writes
+        return owner == "os"
+    if name not in RAW_WRITES:
+        return False
+    if name == "save" and owner == "torch":
+        target = node.args[1] if len(node.args) > 1 else None
+    else:
+        target = node.args[0] if node.args else None
+    if name == "save_checkpoint":
+        return True
+    return target is not None and not (isinstance(target, ast.Name) and target.id in FILE_OBJECTS)
+
+
+def raw_writes(source: str, module: str) -> dict[str, list[str]]:
+    """``{"module:function": [raw write call, ...]}`` of one module's source."""
+    found: dict[str, list[str]] = {}
+    scope: list[str] = []
+
+    class Visitor(ast.NodeVisitor):
+        def visit_FunctionDef(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) -> None:
+            scope.append(node.name)
+            self.generic_visit(node)
+            scope.pop()
+
+        visit_AsyncFunctionDef = visit_FunctionDef
+        visit_ClassDef = visit_FunctionDef
+
+        def visit_Call(self, node: ast.Call) -> None:
+            if _raw_write(node):
+                found.setdefault(f"{module}:{'.'.join(scope) or '<module>'}", []).append(ast.unparse(node))
+            self.generic_visit(node)
+
+    Visitor().visit(ast.parse(source))
+    return found
+
+
+def test_every_write_of_the_package_goes_through_the_write_helper():
+    found: dict[str, list[str]] = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        module = ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts).removesuffix(".__init__")
+        if module != WRITE_HELPER:
+            found.update(raw_writes(path.read_text(encoding="utf-8"), module))
+    unexplained = {where: calls for where, calls in found.items() if where not in ALLOWED_WRITES}
+    assert unexplained == {}, "write through lightning_vtr.utils.io (atomic_write, atomic_save, save_figure, ...)"
+    stale = sorted(set(ALLOWED_WRITES) - set(found))
+    assert stale == [], "ALLOWED_WRITES entries that no longer write: remove them"
+
+
+def test_the_write_audit_flags_raw_writes_and_passes_file_objects():
+    source = """
+def bad_open(path):
+    with open(path, "w") as f:
+        f.write("x")
+def bad_append(log):
+    return log.open("a")
+def bad_os(path):
+    return os.open(path, os.O_WRONLY)
+def bad_text(path):
+    path.write_text("x")
+def bad_fig(fig, out):
+    fig.savefig(out / "report.png")
+def bad_pil(image, path):
+    image.save(path)
+def bad_torch(state, path):
+    torch.save(state, path)
+def bad_replace(tmp, path):
+    os.replace(tmp, path)
+def bad_copy(a, b):
+    shutil.copy(a, b)
+def good(path, fig, image, mesh, state):
+    with open(path) as src, open(path, "rb") as raw:
+        pass
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png")
+        image.save(f, format="PNG")
+        torch.save(state, f)
+        mesh.export(f, file_type="obj")
+    data = mesh.export(file_type="obj")
+    return "a".replace("a", "b"), replace(state, x=1), data
+"""
+    flagged = {where.split(":")[1] for where in raw_writes(source, "m")}
+    expected = {"bad_open", "bad_append", "bad_os", "bad_text", "bad_fig", "bad_pil", "bad_torch", "bad_replace"}
+    assert flagged == expected | {"bad_copy"}

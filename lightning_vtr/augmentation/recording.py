@@ -102,7 +102,7 @@ def write_record(log_dir: str | Path, record: dict[str, Any]) -> Path:
 
         write_record(trainer.log_dir, selection_record(0, targets, view_sets, searched))
     """
-    path = join_under(Path(log_dir), RECORDS_DIR, f"{record_name(record['epoch'])}.json")
+    path = join_under(Path(log_dir), RECORDS_DIR, f"{record_name(record['epoch'])}.json", replace_link=True)
     atomic_write(path, json.dumps(record, indent=1))
     return path
 
@@ -122,7 +122,7 @@ def write_settings(log_dir: str | Path, description: str, settings: dict[str, An
 
         write_settings(trainer.log_dir, repr(callback), callback.settings())
     """
-    path = join_under(Path(log_dir), RECORDS_DIR, "settings.json")
+    path = join_under(Path(log_dir), RECORDS_DIR, "settings.json", replace_link=True)
     atomic_write(path, json.dumps({"version": RECORD_VERSION, "callback": description, "settings": settings}, indent=1))
     return path
 

@@ -33,7 +33,7 @@ from lightning_vtr.augmentation.selection_round import (
 )
 from lightning_vtr.data.dataset import GeneratedSample
 from lightning_vtr.protocol import AugmentableDataModule
-from lightning_vtr.selection.base import SelectionContext, ViewSelector
+from lightning_vtr.selection.base import SelectionContext, ViewSelector, check_selection
 from lightning_vtr.selection.pool import ViewpointPool
 from lightning_vtr.synthesis.base import Synthesizer
 
@@ -182,7 +182,8 @@ def select_objects(
 ) -> list[Selection]:
     """Predict the training objects at ``indices`` and ask ``selector`` for their viewpoints.
 
-    The model is in eval mode meanwhile (selectors that query it see it so), its mode restored after. A selector
+    The model is in eval mode meanwhile (selectors that query it see it so), its mode restored after. Every
+    selection is checked as soon as ``select`` returns (:func:`~lightning_vtr.selection.base.check_selection`). A selector
     with ``batched=False`` sees one object at a time, each process its share, with the random stream
     ``(seed, epoch + 1, index, 0)``; a ``batched`` one (a learning selector) sees every object in one call on
     global rank 0 with the stream ``(seed, epoch + 1, 0, 2)``, and its learned state is broadcast so every process
@@ -222,7 +223,8 @@ def select_objects(
                         [rec.category],
                         generator=stream(settings.seed, epoch + 1, index, SELECT_STREAM),
                         context=_context(selector, pl_module, dm, synthesizer, [rec], settings.source_view_set),
-                    )[0]
+                    )
+                    views = check_selection(selector, views, 1)[0]
                     out.append(object_selection(rec, index, views, predicted[row], target[row], selector.threshold))
                 return out
 
@@ -243,9 +245,16 @@ def select_objects(
                 generator=stream(settings.seed, epoch + 1, 0, BATCHED_SELECT_STREAM),
                 context=_context(selector, pl_module, dm, synthesizer, recs, settings.source_view_set),
             )
-            found = [object_selection(*a, selector.threshold) for a in zip(recs, indices, views, predicted, target)]
-            payload = (found, selector.state_dict())
+            try:
+                views = check_selection(selector, views, len(recs))
+            except ValueError as error:  # every process raises it, rather than the others waiting for rank 0
+                payload = (None, str(error))
+            else:
+                found = [object_selection(*a, selector.threshold) for a in zip(recs, indices, views, predicted, target)]
+                payload = (found, selector.state_dict())
         payload = broadcast_from_zero(trainer, payload)
+        if payload[0] is None:
+            raise ValueError(payload[1])
         if not trainer.is_global_zero:
             selector.load_state_dict(payload[1])
         return payload[0]

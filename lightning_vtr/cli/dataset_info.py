@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from lightning_vtr.cli.arguments import positive_int
 
@@ -21,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and voxel file once (in parallel) and list every missing, unreadable or inconsistent file; the exit "
         f"status is then {EXIT_PROBLEMS} when there is any."
     )
-    parser.add_argument("root", type=Path, help="dataset directory")
+    parser.add_argument("root", help="dataset directory, or `embedded` for the embedded dataset")
     parser.add_argument("--verify", action="store_true", help="read every file and list the problems")
     parser.add_argument(
         "--workers", type=positive_int, default=None, help="threads reading files with --verify (default CPUs + 4)"
@@ -30,15 +29,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightning_vtr.cli.arguments import dataset_folder
     from lightning_vtr.data.format import dataset_summary
+    from lightning_vtr.utils.paths import printable
 
-    print(dataset_summary(args.root))
+    args.root = dataset_folder(args.root, "root", progress=not args.no_progress, read=False)
+    print(dataset_summary(args.root, check_entries=not args.verify))
     if not args.verify:
         return 0
     from lightning_vtr.data.verify import verify_dataset
 
     report = verify_dataset(args.root, workers=args.workers, progress=not args.no_progress)
     for problem in report.problems:
-        print(f"  PROBLEM [{problem.kind}] {problem}")
+        print(printable(f"  PROBLEM [{problem.kind}] {problem}"))
     print(report.summary())
     return 0 if report.ok else EXIT_PROBLEMS

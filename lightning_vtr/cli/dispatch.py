@@ -31,6 +31,7 @@ from typing import Any, NoReturn
 
 from lightning_vtr.errors import EXPECTED_ERRORS, UsageError, exit_status, one_line
 from lightning_vtr.utils.memory import retain_freed_memory
+from lightning_vtr.utils.paths import printable
 
 __all__ = [
     "COMMANDS",
@@ -251,7 +252,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(run())
     except EXPECTED_ERRORS as err:
         # Errors a user can fix get one line, not a traceback: 2 for the command line, 1 for the data.
-        print(f"lightning-vtr {command}: error: {one_line(err)}", file=sys.stderr)
+        print(f"lightning-vtr {command}: error: {printable(one_line(err))}", file=sys.stderr)
         return exit_status(err)
 
 

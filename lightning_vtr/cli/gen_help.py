@@ -19,6 +19,7 @@ import sys
 from collections.abc import Sequence
 
 from lightning_vtr.cli.dispatch import HELP_DIR, HELP_ENVIRONMENT_FILE, LIGHTNING_COMMANDS, help_environment
+from lightning_vtr.utils.io import atomic_write
 
 __all__ = ["generate", "main"]
 
@@ -54,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1 if stale else 0
     HELP_DIR.mkdir(exist_ok=True)
     for path in stale:
-        path.write_text(files[path.name], encoding="utf-8")
+        atomic_write(path, files[path.name])
         print(f"wrote {path}")
     return 0
 

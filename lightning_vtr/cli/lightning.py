@@ -5,7 +5,8 @@ Any ``LightningModule`` with the members of :class:`~lightning_vtr.protocol.Reco
 its own ``training_step`` and ``configure_optimizers``), named ``--model module.Class`` with the working folder
 importable (as under ``python -m``); the package's models are
 :class:`~lightning_vtr.models.base.VoxelReconstructionModule` subclasses. The checkpoints record the model's class
-path, so ``lightning-vtr predict --ckpt`` and ``robustness`` load them without ``--model``;
+path, so ``lightning-vtr predict --ckpt`` and ``robustness`` load those of the package's models without
+``--model`` (a checkpoint never chooses code: a class of your own is named with ``--model``);
 the data is :class:`~lightning_vtr.data.VTRDataModule`; the augmentation callback and its selector and
 synthesizer are configured under ``trainer.callbacks`` (see ``configs/``)::
 
@@ -42,6 +43,7 @@ __all__ = [
     "HIDDEN_OPTIONS",
     "LIGHTNING_SUBCOMMANDS",
     "TRAINER_DEFAULTS",
+    "TRUST_REMEDY",
     "RecordModelClass",
     "VTRLightningCLI",
     "lightning_help",
@@ -53,6 +55,8 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 #: Trainer defaults of :class:`VTRLightningCLI`: the callback's samples reach the next epoch's loader only
 #: when the dataloaders are rebuilt every epoch.
 TRAINER_DEFAULTS: dict[str, Any] = {"reload_dataloaders_every_n_epochs": 1}
+#: What the message of a ``--ckpt_path`` that ``weights_only`` loading refuses advises: LightningCLI's own opt-in.
+TRUST_REMEDY = "load it only if you made it or trust who did: `--weights_only false`"
 #: Options of the classes' signatures that ``--help`` does not show: removed arguments still accepted as ``None``.
 HIDDEN_OPTIONS = ("data.max_generated", "data.init_args.max_generated")
 #: The terminal width (``COLUMNS``) :func:`lightning_help` wraps the help at: the width of a stdout that is not a
@@ -63,8 +67,9 @@ HELP_COLUMNS = 80
 class RecordModelClass(L.Callback):
     """Records the model's class path in every checkpoint (under
     :data:`~lightning_vtr.models.registry.CLASS_PATH_KEY`), so that
-    :func:`~lightning_vtr.models.registry.load_model` finds the class without ``--model``. A class defined in a
-    script run as ``__main__`` is not recorded (it cannot be imported back)."""
+    :func:`~lightning_vtr.models.registry.load_model` finds a class of ``lightning_vtr`` without ``--model`` (any
+    other class is named with ``--model``). A class defined in a script run as ``__main__`` is not recorded (it
+    cannot be imported back)."""
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         cls = type(pl_module)
@@ -126,6 +131,68 @@ class VTRLightningCLI(LightningCLI):
 
         check_model_class(type(self.model), "--model", training=self.subcommand == "fit")
         check_model(self.model)
+
+    def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
+        """The Trainer, each checkpoint callback that was not told otherwise also writing ``last.ckpt``.
+
+        A ``ModelCheckpoint`` whose ``save_last`` is unset (``None``, as in the one Lightning adds when the
+        config names none) keeps the last epoch as ``last.ckpt`` too, the file the docs' commands name;
+        ``save_last: false`` in a config is kept.
+        """
+        from lightning.pytorch.callbacks import ModelCheckpoint
+
+        trainer = super().instantiate_trainer(**kwargs)
+        for callback in trainer.callbacks:  # type: ignore[attr-defined]
+            if isinstance(callback, ModelCheckpoint) and callback.save_last is None:
+                callback.save_last = True
+        return trainer
+
+    def _parse_ckpt_path(self) -> None:
+        """Lightning's: apply ``--ckpt_path``'s hyperparameters to the model, once the checkpoint is known to
+        name no class outside ``lightning_vtr`` that the command line or config did not name.
+
+        LightningCLI would build the class the checkpoint's ``_class_path`` names, importing its module; a
+        checkpoint never chooses the code that runs, so such a class must be the configured model's.
+
+        Raises:
+            UsageError: the checkpoint names another class outside ``lightning_vtr`` (one line).
+            DataError: ``weights_only`` loading refuses the file, unless ``--weights_only false`` was given.
+        """
+        from pathlib import Path
+
+        from lightning_vtr.errors import DataError
+        from lightning_vtr.models.registry import check_recorded_classes, read_checkpoint
+
+        subcommand = self.config.get("subcommand") if hasattr(self.config, "get") else None
+        settings = self.config.get(subcommand) if subcommand else None
+        ckpt_path = settings.get("ckpt_path") if settings is not None else None
+        if not ckpt_path or not Path(ckpt_path).is_file():
+            return super()._parse_ckpt_path()
+        trusted = settings.get("weights_only") is False
+        try:
+            checkpoint = read_checkpoint(ckpt_path, "--ckpt_path", remedy=TRUST_REMEDY)
+        except DataError:
+            if trusted:
+                return None  # a full pickle the user trusts: the config alone builds the model
+            raise
+        model = settings.get("model")
+        configured = model.get("class_path") if hasattr(model, "get") else None
+        check_recorded_classes(
+            checkpoint, ckpt_path, [configured] if isinstance(configured, str) else [], trust_checkpoint=trusted
+        )
+        del checkpoint
+        return super()._parse_ckpt_path()
+
+    def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
+        """Lightning's, with ``weights_only=True`` unless the command line says otherwise: ``--ckpt_path`` is
+        read as tensors and plain containers, never as a full pickle (``--weights_only false`` opts in)."""
+        kwargs = super()._prepare_subcommand_kwargs(subcommand)
+        if (
+            "weights_only" in self._subcommand_method_arguments.get(subcommand, ())
+            and kwargs.get("weights_only") is None
+        ):
+            kwargs["weights_only"] = True
+        return kwargs
 
     def before_predict(self) -> None:
         """Give a datamodule without ``predict_dataloader`` one: its test loaders (every view set's test split)."""
@@ -219,9 +286,10 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
     if not any(word in ("-h", "--help") for word in words):
         for path in _option_values(words, ("--config", "-c")):
             check_config(path)
+        trusted = any(value.lower() == "false" for value in _option_values(words, ("--weights_only",)))
         for path in _option_values(words, ("--ckpt_path",)):
             if path not in ("best", "last", "hpc", "registry", "null", "None"):
-                check_checkpoint(path, "--ckpt_path")
+                check_checkpoint(path, "--ckpt_path", trust_checkpoint=trusted, remedy=TRUST_REMEDY)
                 check_checkpoint_class(path, configured_model(words))
         roots = _option_values(words, ("--data.root",))
         if not roots:  # the last config that names a dataset root decides, as in LightningCLI

@@ -5,7 +5,7 @@ For each object it writes ``prediction.binvox``, a mesh (``prediction.obj`` by d
 ``OUT/<name>/``, then ``OUT/index.html`` showing every sheet and ``OUT/predictions.json``::
 
     lightning-vtr predict --ckpt last.ckpt --images photos/chair photos/lamp --out predictions
-    lightning-vtr predict --ckpt last.ckpt --data ~/.cache/lightning_vtr/embedded --split test --out predictions
+    lightning-vtr predict --ckpt last.ckpt --data embedded --split test --out predictions
 
 An image folder is one object (:mod:`lightning_vtr.evaluation.predict` reads it): every picture in it (PNG,
 JPEG, WebP or BMP, any count and any size) is one view. RGBA pictures are used as they are; an RGB picture gets its alpha from ``<stem>_mask.<ext>`` beside it
@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lightning_vtr.cli.arguments import check_output_folder, comma_separated, positive_int
+from lightning_vtr.cli.arguments import EMBEDDED, check_output_folder, comma_separated, dataset_folder, positive_int
 from lightning_vtr.errors import UsageError
 from lightning_vtr.protocol import VIEW_SETS
 
@@ -61,7 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--ckpt", type=Path, required=True, help="a Lightning checkpoint of a lightning_vtr model")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", type=Path, nargs="+", metavar="DIR", help="image folders, one object each")
-    source.add_argument("--data", type=Path, metavar="DATASET", help="a ShapeNet-VTR directory (build-dataset)")
+    source.add_argument(
+        "--data",
+        metavar="DATASET",
+        help=f"a ShapeNet-VTR directory (build-dataset), or `{EMBEDDED}` for the embedded dataset",
+    )
     add("--out", type=Path, required=True, help="output directory")
     add("--split", default="test", choices=("train", "val", "test"), help="--data split (default test)")
     add(
@@ -80,8 +84,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--model",
         default=None,
         metavar="MODEL",
-        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the class "
-        "the checkpoint records, else the package's model that loads it)",
+        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the "
+        "package's class the checkpoint records, else the package's model that loads it)",
     )
     add("--threshold", type=float, default=0.4, help="occupancy threshold of the exports (default 0.4)")
     add("--mesh-format", choices=MESH_FORMATS, default="obj", help="mesh file format (default obj)")
@@ -91,6 +95,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--device", default="auto", help="torch device: auto (CUDA when available), cpu, cuda:0, ...")
     add("--panel-size", type=positive_int, default=128, help="sheet panel side in pixels (default 128)")
     add("--no-sheets", action="store_true", help="write no sheets (no rendering)")
+    add(
+        "--trust-checkpoint",
+        action="store_true",
+        help="load a --ckpt that only a full pickle load reads (it can run code in it): only a file you made or "
+        "whose maker you trust (see the Security page)",
+    )
+    add("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
     Every input is checked before the model loads or anything is written: the checkpoint file and the image
     folders' listings, then the checkpoint's content and every picture, then ``--out``.
     """
-    from lightning_vtr.data.format import load_metadata
+    from tqdm.auto import tqdm
+
     from lightning_vtr.evaluation.predict import (
         check_view_folder,
         export_predictions,
@@ -110,29 +122,26 @@ def run(args: argparse.Namespace) -> int:
     )
     from lightning_vtr.export import write_summary
     from lightning_vtr.models.registry import check_checkpoint, checkpoint_path, load_model, model_class
+    from lightning_vtr.utils.paths import printable
     from lightning_vtr.utils.validation import check_float
 
     # 1. check inputs
     threshold = check_float("--threshold", args.threshold, minimum=0.0, maximum=1.0, min_open=True, max_open=True)
     if not 0 <= args.key_tolerance <= 255:
         raise UsageError(f"`--key-tolerance` must be in [0, 255], got {args.key_tolerance}")
-    if args.data is not None:
-        if not Path(args.data).expanduser().is_dir():
-            found = "a file" if Path(args.data).expanduser().exists() else "no such folder"
-            raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} ({found})")
-        load_metadata(Path(args.data).expanduser())  # a folder of something else: DatasetFormatError
+    data = None if args.data is None else dataset_folder(args.data, progress=not args.no_progress)
     checkpoint_path(args.ckpt)
     for folder in args.images or ():  # every folder, then every picture, before the model loads or anything is written
         view_folder_pictures(Path(folder).expanduser(), folder)
-    check_checkpoint(args.ckpt)
+    check_checkpoint(args.ckpt, trust_checkpoint=args.trust_checkpoint)
     for folder in args.images or ():
         check_view_folder(Path(folder).expanduser(), folder)
     if args.model is not None:
         model_class(args.model)  # a wrong --model is told before anything is written
     check_output_folder(args.out)
     # 2. load the model and its image transform
-    model = load_model(args.ckpt, args.model)
-    dm = make_datamodule(args.ckpt, model, args.data)
+    model = load_model(args.ckpt, args.model, trust_checkpoint=args.trust_checkpoint)
+    dm = make_datamodule(args.ckpt, model, data)
     # 3. predict
     if args.images is not None:
         results = predict_folders(
@@ -163,10 +172,16 @@ def run(args: argparse.Namespace) -> int:
         sheets=not args.no_sheets,
         panel_size=args.panel_size,
     )
-    for entry in exported:
+    for entry in tqdm(
+        exported,
+        total=getattr(results, "__len__", lambda: None)(),
+        desc="predict: exporting",
+        disable=args.no_progress,
+        leave=False,
+    ):
         entries.append(entry)
-        print(
-            f"{entry['name']}: "
+        tqdm.write(
+            printable(f"{entry['name']}: ")  # a name from data: no raw control character reaches the terminal
             + ", ".join(f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in entry["facts"].items())
         )
     paths = write_summary(args.out, entries, title=f"lightning-vtr predict: {Path(args.ckpt).name}")

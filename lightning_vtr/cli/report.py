@@ -10,9 +10,11 @@ named strategies (with ``--strategies-file``'s) and exits.
 
 A model of your own: ``--model module.Class`` (any ``LightningModule`` with ``predict_voxels``, ``image_size``,
 ``num_views``, ``voxel_resolution``, its own ``training_step`` and ``configure_optimizers``; the working folder is
-importable). A selector of your own: a row of ``--strategies-file FILE`` whose ``selector`` is
+importable), built with the arguments of ``--model-arg KEY=VALUE`` (repeated; ``VALUE`` read as YAML; the
+experiment's ``model_kwargs``). A selector of your own: a row of ``--strategies-file FILE`` whose ``selector`` is
 ``{class_path: module.Class, init_args: {...}}``; the file's rows are added to the shipped ones
-(``--only-strategies-file``: used alone) and named in ``--strategies``.
+(``--only-strategies-file``: used alone) and named in ``--strategies``. ``--no-progress`` turns the progress bars
+off.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from lightning_vtr.experiments.report import ReportConfig
 
-__all__ = ["add_arguments", "list_strategies", "report_config", "run"]
+__all__ = ["add_arguments", "check_model_arguments", "list_strategies", "report_config", "run"]
 
 #: ExperimentConfig fields without a flag of their own here: ``--seeds`` sets ``seed``.
 _EXPERIMENT_EXCLUDED = ("seed",)
@@ -63,6 +65,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "version and the settings) into --out. A killed report re-run skips every finished run."
     )
     add_config_arguments(parser, _unchecked_defaults().experiment, exclude=_EXPERIMENT_EXCLUDED)
+    parser.add_argument(
+        "--model-arg",
+        dest="model_args",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an argument of the model's class, VALUE read as YAML (64, 0.5, true, [8, 16], text); repeat it for "
+        "several, e.g. --model-arg image_size=64 --model-arg lr=0.001 (a 64-px model of yours on 64-px data); "
+        "with pix2vox / lrgt, over --preset's (default: the class's own defaults)",
+    )
+    parser.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bars (the fits' and the view synthesis's); what the runs measure is unchanged",
+    )
     ablations = parser.add_mutually_exclusive_group()
     add_config_arguments(parser, _unchecked_defaults(), groups={"ablations": ablations})
     parser.set_defaults(jobs=None)  # auto_jobs, once the experiment is known
@@ -77,12 +94,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def report_config(args: argparse.Namespace, command: str | None = None) -> ReportConfig:
     """The :class:`~lightning_vtr.experiments.report.ReportConfig` that parsed ``args`` describe."""
     from lightning_vtr.errors import UsageError
-    from lightning_vtr.experiments.flags import config_from_arguments
+    from lightning_vtr.experiments.flags import config_from_arguments, key_values
     from lightning_vtr.experiments.report_config import auto_jobs, default_experiment
     from lightning_vtr.experiments.strategies import report_variants
     from lightning_vtr.models.registry import model_class
 
-    model_class(args.model, "--model", training=True)  # one line naming what a class of yours lacks
+    cls = model_class(args.model, "--model", training=True)  # one line naming what a class of yours lacks
+    model_kwargs = key_values(args.model_args, "--model-arg")
+    check_model_arguments(cls, args.model, model_kwargs)
     variants = report_variants(args.strategies_file, replace=args.only_strategies_file)
     unknown = [name for name in args.strategies if name not in variants]
     if unknown:
@@ -91,13 +110,46 @@ def report_config(args: argparse.Namespace, command: str | None = None) -> Repor
             + (f" with {args.strategies_file}'s" if args.strategies_file else "; rows of your own: --strategies-file")
             + ")"
         )
-    experiment = config_from_arguments(args, default_experiment(), exclude=_EXPERIMENT_EXCLUDED)
+    trainer_kwargs = {"enable_progress_bar": False} if args.no_progress else {}
+    experiment = config_from_arguments(
+        args,
+        default_experiment(),
+        exclude=_EXPERIMENT_EXCLUDED,
+        model_kwargs=model_kwargs,
+        trainer_kwargs=trainer_kwargs,
+    )
     if args.jobs is None:
         args = argparse.Namespace(**{**vars(args), "jobs": auto_jobs(experiment)})
     report = config_from_arguments(args, _unchecked_defaults(), experiment=experiment, command=command)
     if args.no_ablations:
         report.ablations = []
     return report
+
+
+def check_model_arguments(cls: type, model: str, model_kwargs: dict[str, Any]) -> None:
+    """Check that the class ``model`` names takes every ``--model-arg`` (before anything starts).
+
+    Raises:
+        UsageError: a ``KEY`` the class's constructor does not take (the message lists those it takes).
+    """
+    import inspect
+
+    from lightning_vtr.errors import UsageError
+
+    try:
+        parameters = inspect.signature(cls).parameters
+    except (TypeError, ValueError):  # no signature to read: the class is built with them and says
+        return
+    if any(p.kind is p.VAR_KEYWORD for p in parameters.values()):
+        return
+    takes = [name for name, p in parameters.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    for key in model_kwargs:
+        if key == "preset" and "preset" in takes:
+            raise UsageError(f"`--model-arg` preset: give the preset of {model} as `--preset`, not as a model argument")
+        if key not in takes:
+            raise UsageError(
+                f"`--model-arg` {key}: {model} takes no argument {key!r}; it takes {', '.join(takes) or 'none'}"
+            )
 
 
 def list_strategies(strategies_file: str | None = None, only: bool = False) -> str:

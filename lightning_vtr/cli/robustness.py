@@ -28,12 +28,10 @@ model loads or anything is written.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 from pathlib import Path
 from typing import Any
 
-from lightning_vtr.cli.arguments import check_output_folder, positive_int
+from lightning_vtr.cli.arguments import EMBEDDED, check_output_folder, dataset_folder, positive_int
 from lightning_vtr.cli.pix3d import checkpoint_argument
 from lightning_vtr.errors import UsageError
 
@@ -60,7 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="[NAME=]CKPT",
         help="a checkpoint to measure (repeat the option); NAME labels its map (default: the file's stem)",
     )
-    add("--data", type=Path, required=True, metavar="DATASET", help="a ShapeNet-VTR directory with meshes")
+    add(
+        "--data",
+        required=True,
+        metavar="DATASET",
+        help=f"a ShapeNet-VTR directory with meshes, or `{EMBEDDED}` for the embedded dataset",
+    )
     add("--split", default="test", choices=("train", "val", "test"), help="the split measured (default test)")
     add("--out", type=Path, required=True, help="output directory")
     add("--k", type=int, default=30, help="bin interval in degrees, dividing 180 (default 30: 72 bins)")
@@ -71,12 +74,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--model",
         default=None,
         metavar="MODEL",
-        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the class "
-        "each checkpoint records, else the package's model that loads it)",
+        help="pix2vox, lrgt or your class as module.Class, importable from the working folder (default: the "
+        "package's class each checkpoint records, else the package's model that loads it)",
     )
     add("--batch-size", type=positive_int, default=64, help="view sets per forward pass (default 64)")
     add("--device", default="auto", help="torch device: auto (CUDA when available), cpu, cuda:0, ...")
     add("--no-progress", action="store_true", help="no progress bar")
+    add(
+        "--trust-checkpoint",
+        action="store_true",
+        help="load a --ckpt that only a full pickle load reads (it can run code in it): only files you made or "
+        "whose maker you trust (see the Security page)",
+    )
 
 
 def _check_names(checkpoints: list[tuple[str, Path]]) -> None:
@@ -96,7 +105,6 @@ def _check_names(checkpoints: list[tuple[str, Path]]) -> None:
 
 def _check_inputs(args: argparse.Namespace) -> int:
     """Every check before a model loads; returns ``--k``."""
-    from lightning_vtr.data.format import load_metadata
     from lightning_vtr.geometry import check_bin_interval
     from lightning_vtr.models.registry import check_checkpoint, checkpoint_path, model_class
 
@@ -109,24 +117,17 @@ def _check_inputs(args: argparse.Namespace) -> int:
     for _, path in args.ckpt:
         checkpoint_path(path)
     for _, path in args.ckpt:
-        check_checkpoint(path)
+        check_checkpoint(path, trust_checkpoint=args.trust_checkpoint)
     if args.model is not None:
         model_class(args.model)
-    data = Path(args.data).expanduser()
-    if not data.is_dir():
-        found = "a file" if data.exists() else "no such folder"
-        raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} ({found})")
-    load_metadata(data)
+    args.data = dataset_folder(args.data, progress=not args.no_progress)
     return k
 
 
 def _csv_text(header: list[str], rows: list[dict[str, Any]]) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=header, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({key: repr(v) if isinstance(v, float) else v for key, v in row.items()})
-    return buffer.getvalue()
+    from lightning_vtr.utils.io import csv_text
+
+    return csv_text(rows, header)
 
 
 def _bins_rows(maps: dict[str, Any]) -> list[dict[str, Any]]:
@@ -173,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     records: list[Any] | None = None
     views_per_set: int | None = None
     for name, path in args.ckpt:
-        model = load_model(path, args.model).to(device)
+        model = load_model(path, args.model, trust_checkpoint=args.trust_checkpoint).to(device)
         dm = make_datamodule(path, model, Path(args.data).expanduser())
         if records is None:
             records = spread_over_categories(dm.split_records(args.split), args.objects)

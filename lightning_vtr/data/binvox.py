@@ -90,25 +90,54 @@ def _read_header(f, path: Path) -> tuple[tuple[int, int, int], tuple[float, floa
     return dims, translate or (0.0, 0.0, 0.0), 1.0 if scale is None else scale
 
 
+def _check_dims(dims: tuple[int, int, int], resolution: int | None, path: Path) -> None:
+    """Refuse a header whose grid is not ``resolution`` cubed or exceeds :data:`MAX_VOXEL_SIDE` (before allocating)."""
+    from lightning_vtr.errors import DataError
+    from lightning_vtr.utils.limits import MAX_VOXEL_SIDE
+
+    found = "x".join(map(str, dims))
+    if resolution is not None and tuple(dims) != (int(resolution),) * 3:
+        raise DataError(f"{path}: a {resolution}x{resolution}x{resolution} voxel grid was expected, found {found}")
+    if max(dims) > MAX_VOXEL_SIDE:
+        limit = MAX_VOXEL_SIDE
+        raise DataError(f"{path}: a voxel grid of at most {limit}x{limit}x{limit} was expected, found {found}")
+
+
 @overload
 def read_binvox(
-    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: Literal[False] = ...
+    path: str | os.PathLike,
+    *,
+    up_axis: Literal["y", "z"] = ...,
+    return_transform: Literal[False] = ...,
+    resolution: int | None = ...,
 ) -> np.ndarray: ...
 @overload
 def read_binvox(
-    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: Literal[True]
+    path: str | os.PathLike,
+    *,
+    up_axis: Literal["y", "z"] = ...,
+    return_transform: Literal[True],
+    resolution: int | None = ...,
 ) -> tuple[np.ndarray, tuple[float, float, float], float]: ...
 @overload
 def read_binvox(
-    path: str | os.PathLike, *, up_axis: Literal["y", "z"] = ..., return_transform: bool = ...
+    path: str | os.PathLike,
+    *,
+    up_axis: Literal["y", "z"] = ...,
+    return_transform: bool = ...,
+    resolution: int | None = ...,
 ) -> np.ndarray | tuple[np.ndarray, tuple[float, float, float], float]: ...
 def read_binvox(
     path: str | os.PathLike,
     *,
     up_axis: Literal["y", "z"] = "z",
     return_transform: bool = False,
+    resolution: int | None = None,
 ) -> np.ndarray | tuple[np.ndarray, tuple[float, float, float], float]:
     """Read a binvox file into a bool array ``V[i, j, k]`` indexed ``(x, y, z)``.
+
+    The header is checked before the grid is allocated: its sizes must be ``resolution`` (when given) and at
+    most :data:`~lightning_vtr.utils.limits.MAX_VOXEL_SIDE` each, so a small file cannot ask for gigabytes.
 
     Args:
         path: the ``.binvox`` file.
@@ -116,17 +145,21 @@ def read_binvox(
             returns the grid as stored; ``"y"`` (ShapeNetVox32 / 3D-R2N2, made from +Y-up ShapeNet
             meshes) rotates it into the +Z-up frame with :func:`voxels_to_z_up`.
         return_transform: also return the header's ``translate`` and ``scale`` (as stored, file frame).
+        resolution: the ``R`` of the ``R x R x R`` grid expected (a dataset's ``resolution``); ``None`` takes
+            any size up to the limit.
 
     Returns:
         ``(D, H, W)`` bool (``(R, R, R)`` for the usual cubic files), or ``(voxels, translate, scale)``.
 
     Raises:
         ValueError: bad header or data that do not decode to ``D * H * W`` voxels; names the file.
+        DataError: (a ``ValueError``) the header's sizes are not ``resolution`` or exceed the limit.
     """
     check_choice("up_axis", up_axis, UP_AXES)
     path = Path(path)
     with open(path, "rb") as f:
         dims, translate, scale = _read_header(f, path)
+        _check_dims(dims, resolution, path)
         raw = np.frombuffer(f.read(), dtype=np.uint8)
     if raw.size % 2:
         raise ValueError(f"Bad binvox data in '{path}': odd number of run-length bytes ({raw.size})")

@@ -73,6 +73,7 @@ from lightning_vtr.data.splits import empty_split_warning, split_objects, stable
 from lightning_vtr.geometry import sample_uniform_viewpoints, wrap_yaw
 from lightning_vtr.protocol import VIEW_SETS
 from lightning_vtr.utils.io import atomic_write, remove_stale_temporaries
+from lightning_vtr.utils.limits import read_json
 from lightning_vtr.utils.paths import check_name, check_no_case_collisions, join_under
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
@@ -482,7 +483,7 @@ def _check_output_dir(out: Path) -> None:
 def _write_or_check_config(out: Path, config: dict[str, Any]) -> None:
     path = out / "build_config.json"
     if path.is_file():
-        old = json.loads(path.read_text())
+        old = read_json(path)
         # Both sides' keys: a Pix3D build's config has keys a VTR build's lacks.
         diff = {k: (old.get(k), config.get(k)) for k in {*old, *config} if old.get(k) != config.get(k)}
         if diff:
@@ -626,7 +627,7 @@ def _collect_errors(out: Path, tasks: list[_Task]) -> dict[str, str]:
         path = directory / "error.json"
         if path.is_file() and not (directory / "object.json").is_file():
             try:
-                errors[t.key] = json.loads(path.read_text())["error"]
+                errors[t.key] = read_json(path)["error"]
             except (OSError, ValueError, KeyError):
                 errors[t.key] = f"unreadable error report {path}"
     return errors
@@ -707,7 +708,7 @@ def finalize_dataset(output_dir: str | Path) -> BuildReport:
     path = out / "build_config.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: start a build with `lightning-vtr build-dataset {out}` first")
-    config = json.loads(path.read_text())
+    config = read_json(path)
     tasks = _discover(
         config["source"],
         config["source_layout"],

@@ -21,7 +21,9 @@ from torch.utils.data import Dataset
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import ObjectRecord
 from lightning_vtr.data.transforms import IMAGENET_MEAN, IMAGENET_STD, ImageTransform
+from lightning_vtr.errors import DataError
 from lightning_vtr.utils.io import atomic_open, atomic_write
+from lightning_vtr.utils.limits import image_side_limit, open_image
 from lightning_vtr.utils.paths import check_name, join_under
 from lightning_vtr.utils.validation import check_int
 
@@ -51,19 +53,33 @@ def apply_image_transform(transform: Callable[..., Tensor], images: np.ndarray, 
     return transform(images, key=key) if isinstance(transform, ImageTransform) else transform(images)
 
 
-def load_rgba(path: str | Path) -> np.ndarray:
-    """Read an image file as ``(H, W, 4)`` uint8 RGBA (opaque alpha for RGB files)."""
+def load_rgba(path: str | Path, image_size: int | None = None) -> np.ndarray:
+    """Read an image file as ``(H, W, 4)`` uint8 RGBA (opaque alpha for RGB files).
+
+    Args:
+        path: the picture.
+        image_size: the side of the dataset's images, where known: a picture whose header states more than
+            :func:`~lightning_vtr.utils.limits.image_side_limit` of it per side is refused before decoding.
+
+    Raises:
+        DataError: the picture is larger than the limit (names the file, its size and the limit).
+        OSError: it cannot be read or decoded.
+    """
     try:
-        with Image.open(path) as img:
+        with open_image(path, image_side_limit(image_size)) as img:
             return np.asarray(img.convert("RGBA"))
+    except DataError:
+        raise
     except (OSError, ValueError) as err:
         raise OSError(f"Cannot read image {path}: {err}") from err
 
 
 def load_voxels(record: ObjectRecord) -> Tensor:
-    """``(R, R, R)`` float occupancy of an object, in the package frame whatever its file's up axis."""
+    """``(R, R, R)`` float occupancy of an object, in the package frame whatever its file's up axis; a file of
+    another resolution than the record's dataset states is refused before its grid is allocated."""
     up_axis: Literal["y", "z"] = getattr(record, "voxel_up_axis", "z")  # read_binvox checks it
-    return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis).astype(np.float32))
+    resolution = getattr(record, "resolution", None)
+    return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis, resolution=resolution).astype(np.float32))
 
 
 class VTRDataset(Dataset):
@@ -167,7 +183,7 @@ class VTRDataset(Dataset):
         rec = self.records[index // self.repeats]
         paths, viewpoints = rec.views[self.view_set]
         chosen = self.view_indices(index)
-        images = np.stack([load_rgba(paths[i]) for i in chosen])
+        images = np.stack([load_rgba(paths[i], rec.image_size) for i in chosen])
         return {
             "images": apply_image_transform(self.transform, images, (self.seed, self.epoch, index)),
             "voxels": load_voxels(rec),
@@ -226,7 +242,7 @@ def write_generated_sample(sample: GeneratedSample, directory: Path) -> dict:
         )
     names = [f"{i:02d}.png" for i in range(images.shape[0])]
     for image, name in zip(images, names):
-        _atomic_save_png(image, join_under(directory, name))
+        _atomic_save_png(image, join_under(directory, name, replace_link=True))
     return {
         "category": sample.category,
         "object_id": sample.object_id,

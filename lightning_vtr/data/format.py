@@ -16,12 +16,14 @@ from typing import Any
 import numpy as np
 
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write_json as _atomic_write_json
+from lightning_vtr.utils.limits import read_json
 from lightning_vtr.utils.paths import (
     UnsafeNameError,
     check_name,
     check_no_case_collisions,
     check_object_key,
+    printable,
 )
 
 __all__ = [
@@ -100,6 +102,10 @@ class ObjectRecord:
         views: view-set name -> (image paths, ``(N, 2)`` (yaw, pitch) in degrees).
         voxel_up_axis: the up axis of the frame ``voxel_path`` was made in: ``"z"`` for files this package
             writes, ``"y"`` for ShapeNetVox32; pass it to :func:`lightning_vtr.data.binvox.read_binvox`.
+        image_size: the side in pixels of the dataset's images, where the layout states it (``metadata.json``):
+            the loaders refuse a larger picture before decoding it (:mod:`lightning_vtr.utils.limits`).
+        resolution: the ``R`` of the dataset's voxel grids, where the layout states it: the loaders refuse a
+            voxel file of another size before allocating it.
 
     Example:
         >>> directory = object_dir("data", "chair", "chair_0001")
@@ -115,6 +121,8 @@ class ObjectRecord:
     mesh_path: Path | None
     views: dict[str, tuple[list[Path], np.ndarray]] = field(default_factory=dict)
     voxel_up_axis: str = "z"
+    image_size: int | None = None
+    resolution: int | None = None
 
     @property
     def key(self) -> str:
@@ -126,8 +134,8 @@ class ObjectRecord:
 
 
 def atomic_write_json(path: str | Path, payload: Any) -> None:
-    """Write ``payload`` as JSON atomically (see :func:`lightning_vtr.utils.io.atomic_write`)."""
-    atomic_write(path, json.dumps(payload, indent=1).encode())
+    """Write ``payload`` as JSON atomically (see :func:`lightning_vtr.utils.io.atomic_write_json`)."""
+    _atomic_write_json(path, payload)
 
 
 # ------------------------------------------------------------------------------------------ paths
@@ -148,7 +156,7 @@ def image_path(directory: str | Path, view_set: str, index: int) -> Path:
 
 def _read_json(path: Path) -> Any:
     try:
-        return json.loads(path.read_text())
+        return read_json(path)
     except OSError as err:
         raise DatasetFormatError(f"Cannot read {path}: {err}") from err
     except json.JSONDecodeError as err:
@@ -235,13 +243,15 @@ def unsafe_names(meta: Mapping[str, Any], source: str | Path) -> list[UnsafeName
     return found
 
 
-def load_metadata(root: str | Path, *, check_names: bool = True) -> dict:
+def load_metadata(root: str | Path, *, check_names: bool = True, check_entries: bool = True) -> dict:
     """Read and validate ``<root>/metadata.json``.
 
     Args:
         root: the dataset directory.
         check_names: refuse a view-set name or object key that is not a plain path component (see
             :func:`unsafe_names`); ``False`` leaves that to the caller (``verify_dataset`` lists them all).
+        check_entries: refuse an object entry that is not a JSON object or has no valid ``split``; ``False``
+            leaves that to the caller (``verify_dataset`` lists them all).
 
     Returns:
         The parsed file.
@@ -278,6 +288,10 @@ def load_metadata(root: str | Path, *, check_names: bool = True) -> dict:
     missing = [k for k in ("objects", "view_sets", "resolution", "image_size") if k not in meta]
     if missing:
         raise DatasetFormatError(f"{path} lacks the fields {missing}")
+    for name in ("resolution", "image_size"):
+        value = meta[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise DatasetFormatError(f"{path}: {name!r} must be a positive integer, found {value!r}")
     if not isinstance(meta["objects"], Mapping) or not isinstance(meta["view_sets"], list):
         raise DatasetFormatError(
             f"{path}: 'objects' must be a JSON object and 'view_sets' a list, got "
@@ -287,14 +301,31 @@ def load_metadata(root: str | Path, *, check_names: bool = True) -> dict:
         bad = unsafe_names(meta, path)
         if bad:
             raise bad[0]
+    if check_entries:
+        for key, info in meta["objects"].items():
+            problem = _entry_problem(key, info)
+            if problem is not None:
+                raise DatasetFormatError(f"{path}: {problem}")
     return meta
 
 
-def _record(root: Path, key: str, info: Mapping, view_sets: list[str], source: Path) -> ObjectRecord:
-    category, object_id = check_object_key(key, source=source, entry="object key")
+def _entry_problem(key: str, info: Any) -> str | None:
+    """What is wrong with the entry of object ``key`` in ``metadata.json["objects"]``, or ``None``."""
+    if not isinstance(info, Mapping):
+        return f"object {key!r} must map to a JSON object of fields, found {type(info).__name__}"
     split = info.get("split")
-    if split not in SPLITS:
-        raise DatasetFormatError(f"{source}: object {key!r} has split {split!r}, expected one of {SPLITS}")
+    if not isinstance(split, str) or split not in SPLITS:
+        return f"object {key!r} has split {split!r}, expected one of {SPLITS}"
+    return None
+
+
+def _record(root: Path, key: str, info: Mapping, meta: Mapping[str, Any], source: Path) -> ObjectRecord:
+    category, object_id = check_object_key(key, source=source, entry="object key")
+    problem = _entry_problem(key, info)
+    if problem is not None:
+        raise DatasetFormatError(f"{source}: {problem}")
+    split = info["split"]
+    view_sets = list(meta["view_sets"])
     directory = object_dir(root, category, object_id)
     viewpoints = _check_views(info.get("views", {}), source, view_sets)
     views = {name: ([image_path(directory, name, i) for i in range(len(vp))], vp) for name, vp in viewpoints.items()}
@@ -306,6 +337,8 @@ def _record(root: Path, key: str, info: Mapping, view_sets: list[str], source: P
         voxel_path=directory / "model.binvox",
         mesh_path=mesh if mesh.is_file() else None,
         views=views,
+        image_size=int(meta["image_size"]),
+        resolution=int(meta["resolution"]),
     )
 
 
@@ -337,7 +370,7 @@ def scan_dataset(root: str | Path, *, check_files: bool = False) -> list[ObjectR
     root = Path(root)
     meta = load_metadata(root)
     source = root / "metadata.json"
-    records = [_record(root, key, info, list(meta["view_sets"]), source) for key, info in meta["objects"].items()]
+    records = [_record(root, key, info, meta, source) for key, info in meta["objects"].items()]
     if check_files:
         for r in records:
             for path in [r.voxel_path, *(p for paths, _ in r.views.values() for p in paths)]:
@@ -358,24 +391,34 @@ def read_object(root: str | Path, category: str, object_id: str) -> ObjectRecord
     key = f"{category}/{object_id}"
     if key not in meta["objects"]:
         raise DatasetFormatError(f"{root / 'metadata.json'} lists no object {key!r}")
-    return _record(root, key, meta["objects"][key], list(meta["view_sets"]), root / "metadata.json")
+    return _record(root, key, meta["objects"][key], meta, root / "metadata.json")
 
 
-def dataset_summary(root: str | Path) -> str:
+def dataset_summary(root: str | Path, *, check_entries: bool = True) -> str:
     """A table of object counts per category and split, plus the build options and failures.
 
-    It joins no name to a path, so it reads a ``metadata.json`` with unsafe names too (``--verify`` lists them).
+    It joins no name to a path, so it reads a ``metadata.json`` with unsafe names too (``--verify`` lists them);
+    names are shown through :func:`~lightning_vtr.utils.paths.printable`.
+
+    Args:
+        root: the dataset directory.
+        check_entries: refuse a malformed object entry (see :func:`load_metadata`); ``False`` counts such
+            entries in a line of their own (``--verify`` lists them).
     """
     root = Path(root)
-    meta = load_metadata(root, check_names=False)
+    meta = load_metadata(root, check_names=False, check_entries=check_entries)
     counts: dict[str, dict[str, int]] = {}
+    malformed = 0
     for key, info in meta["objects"].items():
-        row = counts.setdefault(key.split("/", 1)[0], dict.fromkeys(SPLITS, 0))
+        if _entry_problem(key, info) is not None:
+            malformed += 1
+            continue
+        row = counts.setdefault(printable(str(key).split("/", 1)[0]), dict.fromkeys(SPLITS, 0))
         row[info["split"]] += 1
     width = max([len("category"), *map(len, counts)])
     lines = [
         f"ShapeNet-VTR dataset {root} (format version {meta['version']})",
-        f"  source {meta.get('source')!r}, {meta['image_size']} px, R={meta['resolution']}, "
+        f"  source {printable(repr(meta.get('source')))}, {meta['image_size']} px, R={meta['resolution']}, "
         f"{meta.get('views_per_set')} views per set {list(meta['view_sets'])}, aligned pitch {meta.get('aligned_pitch')} deg",
         f"  {'category':<{width}}  {'train':>6} {'val':>6} {'test':>6} {'total':>6}",
     ]
@@ -388,6 +431,8 @@ def dataset_summary(root: str | Path) -> str:
     lines.append(
         f"  {'all':<{width}}  {totals['train']:>6} {totals['val']:>6} {totals['test']:>6} {sum(totals.values()):>6}"
     )
+    if malformed:
+        lines.append(f"  {malformed} object entry(ies) not a JSON object or without a valid split (not counted)")
     failed = meta.get("failed", [])
     if failed:
         lines.append(f"  {len(failed)} object(s) failed to build; see {root / 'errors.json'}")

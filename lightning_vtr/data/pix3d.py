@@ -75,13 +75,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 from torch.utils.data import Dataset
 
 from lightning_vtr.data.dataset import apply_image_transform
 from lightning_vtr.data.format import DatasetFormatError
 from lightning_vtr.data.shapenet_rendering import read_split_file
 from lightning_vtr.data.transforms import ImageTransform
+from lightning_vtr.utils.limits import open_image, read_json
 from lightning_vtr.utils.paths import check_name, check_no_case_collisions, check_relative_path
 from lightning_vtr.utils.validation import check_choice, check_float, check_int
 
@@ -352,7 +352,7 @@ def read_pix3d(
     if not path.is_file():
         raise FileNotFoundError(f"{str(path)!r} does not exist: `root` must hold Pix3D's {PIX3D_ANNOTATIONS}")
     try:
-        entries = json.loads(path.read_text())
+        entries = read_json(path)
     except json.JSONDecodeError as err:
         raise DatasetFormatError(f"{path} is not valid JSON: {err}") from err
     if not isinstance(entries, list):
@@ -565,7 +565,7 @@ def read_pix3d_image(path: Path) -> np.ndarray:
         OSError: naming ``path``, when it cannot be read as an image.
     """
     try:
-        with Image.open(path) as img:
+        with open_image(path) as img:  # its size checked before decoding
             return np.asarray(img.convert("RGB"))
     except (OSError, ValueError) as err:
         raise OSError(f"Cannot read image {path}: {err}") from err
@@ -579,7 +579,7 @@ def read_pix3d_mask(path: Path, shape: tuple[int, int], image_path: Path) -> np.
         DatasetFormatError: naming both files, when the mask's size is not ``shape``.
     """
     try:
-        with Image.open(path) as img:
+        with open_image(path) as img:
             mask = np.asarray(img.convert("L"))
     except (OSError, ValueError) as err:
         raise OSError(f"Cannot read mask {path}: {err}") from err

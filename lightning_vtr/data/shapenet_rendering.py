@@ -42,6 +42,7 @@ import numpy as np
 
 from lightning_vtr.data.format import SHAPENET_SYNSETS, SPLITS, DatasetFormatError, ObjectRecord
 from lightning_vtr.geometry import wrap_yaw
+from lightning_vtr.utils.limits import read_json
 from lightning_vtr.utils.paths import check_name, check_no_case_collisions
 from lightning_vtr.utils.validation import check_choice
 
@@ -120,7 +121,7 @@ def read_split_file(path: Path) -> list[dict]:
             lacks ``taxonomy_id`` or holds a name that is not a safe path component.
     """
     try:
-        entries = json.loads(path.read_text())
+        entries = read_json(path)
     except OSError as err:
         raise DatasetFormatError(f"Cannot read the split file {path}: {err}") from err
     except json.JSONDecodeError as err:

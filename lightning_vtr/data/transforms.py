@@ -27,6 +27,7 @@ from torch import Tensor
 
 from lightning_vtr.data.format import IMAGE_SUFFIXES
 from lightning_vtr.utils.compositing import alpha_composite
+from lightning_vtr.utils.limits import open_image
 from lightning_vtr.utils.validation import check_choice, check_float, check_int, check_type
 
 __all__ = [
@@ -282,7 +283,7 @@ class BackgroundFolder:
     def _open(self, index: int) -> Image.Image:
         path = self.paths[index]
         try:
-            return Image.open(path)
+            return open_image(path)  # its size checked before decoding
         except (OSError, ValueError) as err:
             raise OSError(f"Cannot read background image {path}: {err}") from err
 

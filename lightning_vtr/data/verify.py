@@ -13,6 +13,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import time
+import warnings
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ PROBLEM_KINDS: tuple[str, ...] = (
     "voxel_resolution",
     "inconsistent",
     "unsafe_name",
+    "outside",
 )
 
 #: Problems an error message lists before it says how many more there are.
@@ -55,7 +57,8 @@ class DatasetProblem:
         path: the file (or directory) at fault.
         kind: one of :data:`PROBLEM_KINDS`; ``"unsafe_name"``: a category, object id or view-set name that is
             not a plain path component (the message names the entry and the rule it breaks, see
-            :mod:`lightning_vtr.utils.paths`).
+            :mod:`lightning_vtr.utils.paths`); ``"outside"``: an image, voxel file or folder of an object that is
+            a symlink leading out of the dataset (it is not read).
         message: what is wrong with it.
         expected: the value ``metadata.json`` implies (``None`` when there is no single value).
         actual: the value found.
@@ -130,6 +133,7 @@ class _Expected:
     """What every object of the dataset must match, from ``metadata.json``."""
 
     root: Path
+    resolved_root: Path
     metadata: Path
     image_size: int
     resolution: int
@@ -173,13 +177,14 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
         check_int("workers", workers, minimum=1)
     start = time.perf_counter()
     root = Path(root)
-    meta = load_metadata(root, check_names=False)
+    meta = load_metadata(root, check_names=False, check_entries=False)
     views_per_set = meta.get("views_per_set")
     # An unsafe name is reported, never joined to a path: its objects and view sets are not read.
     unsafe = unsafe_names(meta, root / "metadata.json")
     bad_names = {err.name for err in unsafe}
     expected = _Expected(
         root=root,
+        resolved_root=root.resolve(),
         metadata=root / "metadata.json",
         image_size=int(meta["image_size"]),
         resolution=int(meta["resolution"]),
@@ -255,11 +260,14 @@ def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[Datase
             DatasetProblem(directory, "missing", f"metadata.json lists object {key!r} but its directory does not exist")
         )
         return problems, 0
+    outside = _outside(directory, expected)
+    if outside is not None:
+        return [*problems, outside], 0
     problems += _check_object_json(directory, category, object_id)
     problems += _check_mesh(directory / "mesh.ply")
     voxel_path = directory / "model.binvox"
     files = int(voxel_path.is_file())
-    voxel_problem = _check_voxels(voxel_path, expected.resolution)
+    voxel_problem = _outside(voxel_path, expected) or _check_voxels(voxel_path, expected.resolution)
     if voxel_problem is not None:
         problems.append(voxel_problem)
     views = info.get("views")
@@ -277,25 +285,36 @@ def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[Datase
 
 def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
     """``splits.json``: present, ``{category: {split: [ids]}}``, and agreeing with ``metadata.json``'s splits."""
-    import json
+    from lightning_vtr.utils.limits import read_json
 
     path = root / "splits.json"
     if not path.is_file():
         return [DatasetProblem(path, "missing", "the dataset's splits.json does not exist")]
     try:
-        splits = json.loads(path.read_text())
+        splits = read_json(path)
     except (OSError, ValueError) as err:
         return [DatasetProblem(path, "unreadable", f"cannot read splits.json: {err}")]
     listed: dict[str, str] = {}
     unsafe: list[DatasetProblem] = []
+    shape = "splits.json must map categories to {split: [object ids]}"
     if isinstance(splits, Mapping):
         for category, parts in splits.items():
             try:
                 check_name(category, source=path, entry="category")
             except UnsafeNameError as err:
                 unsafe.append(_unsafe_problem(err))
-            for split, ids in parts.items() if isinstance(parts, Mapping) else ():
-                for oid in ids if isinstance(ids, list) else ():
+            if not isinstance(parts, Mapping):
+                found = f"a {type(parts).__name__}"
+                unsafe.append(DatasetProblem(path, "unreadable", f"{shape}; category {category!r} holds {found}"))
+                continue
+            for split, ids in parts.items():
+                if split not in SPLITS or not isinstance(ids, list):
+                    found = f"split {split!r} holding a {type(ids).__name__}"
+                    unsafe.append(
+                        DatasetProblem(path, "unreadable", f"{shape} of {list(SPLITS)}; {category!r} has {found}")
+                    )
+                    continue
+                for oid in ids:
                     try:
                         check_name(oid, source=path, entry=f"object id of {category!r}")
                     except UnsafeNameError as err:
@@ -305,10 +324,8 @@ def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
             check_no_case_collisions(listed, source=path, entry="object")
         except UnsafeNameError as err:
             unsafe.append(_unsafe_problem(err))
-    if not isinstance(splits, Mapping) or (not listed and meta["objects"]):
-        return [
-            DatasetProblem(path, "unreadable", "splits.json must map categories to {split: [object ids]}", None, None)
-        ]
+    if not isinstance(splits, Mapping) or (not listed and meta["objects"] and not unsafe):
+        return [DatasetProblem(path, "unreadable", shape, None, None)]
     problems = unsafe
     for key, info in meta["objects"].items():
         split = info.get("split") if isinstance(info, Mapping) else None
@@ -410,6 +427,9 @@ def _check_view_set(
     if not set_dir.is_dir():
         problems.append(DatasetProblem(set_dir, "missing", f"view set {view_set!r} of object {key!r} does not exist"))
         return problems, 0
+    outside = _outside(set_dir, expected)
+    if outside is not None:
+        return [*problems, outside], 0
     listed_paths = [image_path(directory, view_set, i) for i in range(count)]
     on_disk = {p.name for p in set_dir.glob("*.png")}
     for path in listed_paths:
@@ -438,18 +458,33 @@ def _check_view_set(
     for path in listed_paths:
         if path.name in on_disk:
             files += 1
-            problem = _check_image(path, expected.image_size)
+            problem = _outside(path, expected) or _check_image(path, expected.image_size)
             if problem is not None:
                 problems.append(problem)
     return problems, files
 
 
+def _outside(path: Path, expected: _Expected) -> DatasetProblem | None:
+    """An ``"outside"`` problem when ``path`` is a symlink that resolves to a place outside the dataset."""
+    if not path.is_symlink():
+        return None
+    target = path.resolve()
+    if target == expected.resolved_root or expected.resolved_root in target.parents:
+        return None
+    return DatasetProblem(path, "outside", f"a symlink leading out of the dataset, to {target}; not read")
+
+
 def _check_image(path: Path, size: int) -> DatasetProblem | None:
-    """The problem of one image, if any: decoded in full, as the training loader decodes it."""
+    """The problem of one image, if any: its size read from the header, then decoded in full, as the training
+    loader decodes it (a picture of another size is not decoded)."""
     try:
-        with Image.open(path) as image:
-            image.load()
+        with warnings.catch_warnings():  # PIL warns of a large header: its size is what is checked here
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = Image.open(path)
+        with image:
             width, height = image.size
+            if (height, width) == (size, size):
+                image.load()
     except Exception as err:  # whatever a decoder raises (Pillow has many kinds), the file is what is wrong
         return DatasetProblem(path, "unreadable", f"cannot read the image: {err}")
     if (height, width) != (size, size):

@@ -13,8 +13,6 @@ writes ``table.md``, ``results.csv`` and ``results.json``::
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 from collections.abc import Mapping, Sequence, Sized
@@ -30,7 +28,7 @@ from lightning_vtr.data.transforms import ImageTransform
 from lightning_vtr.evaluation.tables import format_cell
 from lightning_vtr.metrics.functional import DEFAULT_FSCORE_CONVENTION, DEFAULT_IOU_THRESHOLDS, threshold_key
 from lightning_vtr.metrics.voxel import VoxelFScore, VoxelIoU
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write, write_csv
 from lightning_vtr.utils.validation import check_int
 
 __all__ = [
@@ -329,10 +327,6 @@ def write_evaluation(
     atomic_write(out / "table.md", f"# {title}\n\n{table}\n\n" + "".join(f"* {n}\n" for n in notes))
     rows = evaluation_rows(results)
     fields = list(dict.fromkeys(k for row in rows for k in row))
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write(out / "results.csv", buffer.getvalue())
+    write_csv(out / "results.csv", rows, fields)
     atomic_write(out / "results.json", json.dumps(results, indent=1))
     return table

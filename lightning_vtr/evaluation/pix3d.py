@@ -33,7 +33,7 @@ from lightning_vtr.data.pix3d import (
     read_pix3d_mask,
 )
 from lightning_vtr.evaluation.dataset import evaluate_dataset
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import write_csv
 
 __all__ = [
     "FRAME_CHECK_MIN_IOU",
@@ -272,8 +272,7 @@ def write_frame_check(out: str | Path, records: Sequence[Pix3DRecord]) -> dict[s
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ious = {record.key: frame_check(record) for record in records}
-    lines = ["photograph,iou"] + [f"{key},{iou:.4f}" for key, iou in ious.items()]
-    atomic_write(out / "frame_check.csv", "\n".join(lines) + "\n")
+    write_csv(out / "frame_check.csv", ([key, f"{iou:.4f}"] for key, iou in ious.items()), ["photograph", "iou"])
     return ious
 
 

@@ -23,7 +23,6 @@ datamodule hyperparameters); :func:`predict_folders` and :func:`predict_dataset`
 
 from __future__ import annotations
 
-import inspect
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -46,7 +45,9 @@ from lightning_vtr.utils.paths import join_under
 from lightning_vtr.visualize import object_sheet
 
 __all__ = [
+    "CHECKPOINT_DATA_SETTINGS",
     "check_view_folder",
+    "checkpoint_data_settings",
     "export_predictions",
     "make_datamodule",
     "predict_dataset",
@@ -64,8 +65,10 @@ _MASK_SUFFIX = "_mask"
 def make_datamodule(ckpt: str | Path, model: Any, root: str | Path | None = None) -> VTRDataModule:
     """A :class:`~lightning_vtr.data.VTRDataModule` over ``root`` that prepares images as the model was trained.
 
-    It takes the checkpoint's datamodule settings (image recipe, normalisation, background, seed) and the model's
-    image size and number of views.
+    It takes the checkpoint's datamodule settings (image recipe, normalisation, background colour, seed, view
+    sets; see :func:`checkpoint_data_settings`) and the model's image size and number of views. A checkpoint
+    never widens what is read from disk: folders it names (a ``"folder:PATH"`` background, ``generated_dir``, a
+    dataset) are not used.
 
     Args:
         ckpt: the checkpoint the model came from; a checkpoint without datamodule hyperparameters warns and
@@ -90,10 +93,50 @@ def make_datamodule(ckpt: str | Path, model: Any, root: str | Path | None = None
             "VTRDataModule's defaults (white background, ImageNet normalisation), which may not be the model's",
             stacklevel=2,
         )
-    accepted = set(inspect.signature(VTRDataModule).parameters) - {"root", "shapenet_rendering", "n_views", "embedded"}
-    kwargs = {k: v for k, v in stored.items() if k in accepted}
+    kwargs = checkpoint_data_settings(stored)
     kwargs.update(image_size=int(model.image_size), num_views=int(model.num_views), test_repeats=1)
     return VTRDataModule(None if root is None else str(root), **kwargs)
+
+
+#: The datamodule settings a checkpoint may set for prediction: how images are prepared and which views and
+#: objects are served. Paths (``root``, ``generated_dir``, a background folder), build options and the loader's
+#: worker processes come from the caller only.
+CHECKPOINT_DATA_SETTINGS = (
+    "background",
+    "normalize",
+    "background_range",
+    "recipe",
+    "seed",
+    "test_view_sets",
+    "categories",
+    "train_view_set",
+    "test_split",
+)
+
+
+def checkpoint_data_settings(stored: dict[str, Any]) -> dict[str, Any]:
+    """The datamodule settings of :data:`CHECKPOINT_DATA_SETTINGS` in a checkpoint's datamodule hyperparameters,
+    with every folder dropped: a ``"folder:PATH"`` background becomes the plain colour, a recipe's
+    ``background_folder`` is removed (both touch training views only, so the evaluation transform is the same).
+
+    Args:
+        stored: the checkpoint's datamodule hyperparameters (untrusted).
+
+    Returns:
+        Keyword arguments of :class:`~lightning_vtr.data.VTRDataModule`.
+
+    Example:
+        >>> checkpoint_data_settings({"background": "folder:/", "generated_dir": "/", "normalize": "pm1"})
+        {'normalize': 'pm1'}
+    """
+    kwargs = {k: v for k, v in stored.items() if k in CHECKPOINT_DATA_SETTINGS}
+    if isinstance(kwargs.get("background"), str):  # "folder:PATH": its crops are training backgrounds only
+        del kwargs["background"]
+        kwargs.pop("background_range", None)
+    recipe = kwargs.get("recipe")
+    if isinstance(recipe, dict) and recipe.get("background_folder") is not None:
+        kwargs["recipe"] = {**recipe, "background_folder": None}
+    return kwargs
 
 
 # --------------------------------------------------------------------------------------------- image folders
@@ -144,9 +187,13 @@ def _open_picture(path: Path) -> Any:
     """``PIL.Image.open(path)``, or :class:`~lightning_vtr.errors.DataError` naming the file when it is not a
     picture PIL can read (empty, truncated, another format under a picture's suffix)."""
 
+    from lightning_vtr.utils.limits import open_image
+
     try:
-        image = Image.open(path)
+        image = open_image(path)  # its header's size checked before decoding (a small file may expand)
         image.load()
+    except DataError as err:
+        raise DataError(f"`--images`: {err}") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
         size = path.stat().st_size if path.is_file() else 0
         if size == 0:
@@ -375,7 +422,7 @@ def predict_dataset(
                 paths = records[i].views[view_set][0]
                 yield {
                     "name": f"{view_set}/{item['category']}/{item['object_id']}",
-                    "display": [load_rgba(paths[j]) for j in dataset.view_indices(i)],
+                    "display": [load_rgba(paths[j], records[i].image_size) for j in dataset.view_indices(i)],
                     "images": item["images"],
                     "predicted": pred,
                     "target": item["voxels"],

@@ -13,7 +13,6 @@ Angles are in degrees; bin areas are fractions of the whole sphere (they sum to 
 
 from __future__ import annotations
 
-import json
 import math
 import zlib
 from collections.abc import Sequence
@@ -333,7 +332,7 @@ class RobustnessMap:
 
             robustness_map(model, dm).to_csv("runs/robustness")  # runs/robustness/bins.csv, objects.csv, ...
         """
-        import csv
+        from lightning_vtr.utils.io import atomic_write_json, write_csv
 
         out = Path(path)
         out.mkdir(parents=True, exist_ok=True)
@@ -341,16 +340,12 @@ class RobustnessMap:
         if per_category:
             for category in self.category_names():
                 rows += self.bin_rows(category, confidence)
-        with open(out / BINS_FILE, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=_BINS_HEADER)
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({key: repr(v) if isinstance(v, float) else v for key, v in row.items()})
-        with open(out / OBJECTS_FILE, "w", newline="") as f:
-            table = csv.writer(f)
-            table.writerow(["category", "object_id", *[f"bin_{b}" for b in range(self.num_bins)]])
-            for category, object_id, values in zip(self.categories, self.object_ids, self.iou):
-                table.writerow([category, object_id, *[repr(float(v)) for v in values]])
+        write_csv(out / BINS_FILE, rows, _BINS_HEADER)
+        write_csv(
+            out / OBJECTS_FILE,
+            ([c, o, *map(float, values)] for c, o, values in zip(self.categories, self.object_ids, self.iou)),
+            ["category", "object_id", *[f"bin_{b}" for b in range(self.num_bins)]],
+        )
         meta = {
             "k": self.k,
             "threshold": self.threshold,
@@ -360,7 +355,7 @@ class RobustnessMap:
             "aligned_pitch": self.aligned_pitch,
             "extra": self.extra,
         }
-        (out / META_FILE).write_text(json.dumps(meta, indent=1))
+        atomic_write_json(out / META_FILE, meta)  # written last: it marks a complete map
         return out / BINS_FILE
 
     @classmethod
@@ -373,12 +368,15 @@ class RobustnessMap:
         """
         import csv
 
+        from lightning_vtr.utils.io import uncsv_cell
+        from lightning_vtr.utils.limits import read_json
+
         directory = Path(path)
-        meta = json.loads((directory / META_FILE).read_text())
+        meta = read_json(directory / META_FILE)
         with open(directory / OBJECTS_FILE, newline="") as f:
             reader = csv.reader(f)
             next(reader)
-            rows = list(reader)
+            rows = [[uncsv_cell(row[0]), uncsv_cell(row[1]), *row[2:]] for row in reader]
         iou = np.array([[float(v) for v in row[2:]] for row in rows], dtype=np.float64)
         n_bins = (180 // int(meta["k"])) * (360 // int(meta["k"]))
         iou = iou.reshape(len(rows), n_bins) if rows else np.zeros((0, n_bins))
@@ -422,11 +420,13 @@ def read_bins_csv(path: str | Path) -> list[dict[str, Any]]:
     """
     import csv
 
+    from lightning_vtr.utils.io import uncsv_cell
+
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     parsed = []
     for row in rows:
-        item: dict[str, Any] = {"category": row["category"]}
+        item: dict[str, Any] = {"category": uncsv_cell(row["category"])}
         for key in _BINS_HEADER[1:]:
             item[key] = int(row[key]) if key in ("bin", "objects") else float(row[key])
         parsed.append(item)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from lightning_vtr.evaluation.robustness import RobustnessMap
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write, save_figure
 from lightning_vtr.utils.paths import join_under
 from lightning_vtr.utils.validation import check_int
 
@@ -73,10 +73,7 @@ def _draw(ax, rmap: RobustnessMap, values: np.ndarray, cmap: str, vmin: float, v
 
 
 def _save(fig, path: str | Path) -> Path:
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=_DPI, format="png")
-    return out
+    return save_figure(fig, path, dpi=_DPI, format="png")
 
 
 def plot_map(
@@ -287,7 +284,13 @@ def write_index_html(
     vmin, vmax = shared_limits(maps)
     rows, figures = [], []
     for name, rmap in maps.items():
-        png = plot_map(rmap, join_under(directory, f"{map_file_stem(name)}.png"), title=name, vmin=vmin, vmax=vmax)
+        png = plot_map(
+            rmap,
+            join_under(directory, f"{map_file_stem(name)}.png", replace_link=True),
+            title=name,
+            vmin=vmin,
+            vmax=vmax,
+        )
         means = rmap.mean()
         worst, best = int(np.nanargmin(means)), int(np.nanargmax(means))
         rows.append(
@@ -302,7 +305,7 @@ def write_index_html(
             diff = plot_difference(
                 rmap,
                 maps[reference],
-                join_under(directory, f"{map_file_stem(name)}_minus_{map_file_stem(reference)}.png"),
+                join_under(directory, f"{map_file_stem(name)}_minus_{map_file_stem(reference)}.png", replace_link=True),
                 title=f"{name} - {reference}",
             )
             figures.append(f'<figure><img src="{html.escape(diff.name)}" alt="{html.escape(diff.stem)}"></figure>')

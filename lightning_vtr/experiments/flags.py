@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import math
 import types
 import typing
 from collections.abc import Collection, Sequence
@@ -20,7 +22,7 @@ from typing import Any
 
 from lightning_vtr.utils.argtypes import at_least, comma_separated
 
-__all__ = ["add_config_arguments", "config_from_arguments", "flag_fields", "option"]
+__all__ = ["add_config_arguments", "config_from_arguments", "flag_fields", "key_values", "option", "yaml_word"]
 
 
 def option(name: str) -> str:
@@ -135,3 +137,66 @@ def config_from_arguments(args: argparse.Namespace, defaults: Any, *, exclude: C
     """
     values = {f.name: getattr(args, f.name) for f in flag_fields(type(defaults), exclude)}
     return dataclasses.replace(defaults, **{**values, **changes})
+
+
+def key_values(words: Sequence[str] | None, option: str) -> dict[str, Any]:
+    """``KEY=VALUE`` words (a repeated flag) as a dict, each ``VALUE`` read as YAML: ``64`` an int, ``0.5`` a float,
+    ``true`` a bool, ``[1, 2]`` a list, ``null`` None, anything else a string.
+
+    Args:
+        words: the flag's words, in command-line order (``None``: none given).
+        option: the flag, quoted in the messages.
+
+    Returns:
+        ``{KEY: value}`` in the words' order.
+
+    Raises:
+        UsageError: a word without ``=`` or with a ``KEY`` that is not a Python identifier, a ``VALUE`` that is no
+            YAML, or a ``KEY`` given twice.
+
+    Example:
+        >>> key_values(["image_size=64", "name=small", "widths=[8, 16]", "dropout=0.5"], "--model-arg")
+        {'image_size': 64, 'name': 'small', 'widths': [8, 16], 'dropout': 0.5}
+    """
+    import yaml
+
+    from lightning_vtr.errors import UsageError
+
+    out: dict[str, Any] = {}
+    for word in words or ():
+        key, equals, text = word.partition("=")
+        if not equals or not key.isidentifier():
+            raise UsageError(f"`{option}` must be KEY=VALUE with KEY an argument name, got {word!r}")
+        if key in out:
+            raise UsageError(f"`{option}` gives {key!r} twice ({key}={out[key]!r} and {word!r}); give it once")
+        try:
+            out[key] = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            problem = str(error).splitlines()[0]
+            raise UsageError(
+                f"`{option}` {key}: VALUE must be YAML (64, 0.5, true, [1, 2], text), got {text!r} ({problem})"
+            ) from None
+    return out
+
+
+def yaml_word(value: Any) -> str:
+    """``value`` as a command-line ``VALUE`` that :func:`key_values` reads back equal.
+
+    Example:
+        >>> [yaml_word(v) for v in (64, 1e-05, "small", "64", True, None, [1, 2], {"a": 1})]
+        ['64', '1.0e-05', 'small', '"64"', 'true', 'null', '[1, 2]', '{"a": 1}']
+    """
+    import yaml
+
+    if isinstance(value, str):
+        try:
+            if yaml.safe_load(value) == value and "\n" not in value:
+                return value
+        except yaml.YAMLError:
+            pass
+    if isinstance(value, float) and math.isfinite(value):
+        text = repr(value)
+        return text if "." in text or "e" not in text else text.replace("e", ".0e", 1)
+    if isinstance(value, float):
+        return ".nan" if math.isnan(value) else ".inf" if value > 0 else "-.inf"
+    return json.dumps(value, default=str)

@@ -4,7 +4,6 @@ per baseline x run x view set x metric) and the chart ``report.png``.
 
 from __future__ import annotations
 
-import csv
 import itertools
 import math
 from pathlib import Path
@@ -15,6 +14,7 @@ from lightning_vtr.experiments.report_config import BASELINES, METRICS, PITCH_BA
 from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.experiments.report_tables import metric_value, paired_differences, run_values, seed_estimate
 from lightning_vtr.protocol import VIEW_SETS
+from lightning_vtr.utils.io import save_figure, write_csv
 
 __all__ = ["write_chart", "write_differences_csv", "write_results_csv"]
 
@@ -24,19 +24,18 @@ def write_results_csv(
 ) -> None:
     """One row per run x seed x view set: ``run, strategy, seed, view_set``, the metrics (fractions, unrounded) and
     the run's ``train_seconds``."""
-    with path.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["run", "strategy", "seed", "view_set", *METRICS, "train_seconds"])
-        for run in runs:
-            for seed in seeds:
-                payload = payloads[run.name][seed]
-                for view_set in VIEW_SETS:
-                    values = payload["results"].get(view_set, {})
-                    writer.writerow(
-                        [run.name, run.strategy, seed, view_set]
-                        + [repr(float(_nan_if_none(metric_value(values, m)))) for m in METRICS]
-                        + [f"{payload['train_seconds']:.3f}"]
-                    )
+    rows = []
+    for run in runs:
+        for seed in seeds:
+            payload = payloads[run.name][seed]
+            for view_set in VIEW_SETS:
+                values = payload["results"].get(view_set, {})
+                rows.append(
+                    [run.name, run.strategy, seed, view_set]
+                    + [repr(float(_nan_if_none(metric_value(values, m)))) for m in METRICS]
+                    + [f"{payload['train_seconds']:.3f}"]
+                )
+    write_csv(path, rows, ["run", "strategy", "seed", "view_set", *METRICS, "train_seconds"])
 
 
 def _nan_if_none(value: float | None) -> float:
@@ -50,25 +49,25 @@ def write_differences_csv(
     seeds: list[int],
     baselines: list[str] | None = None,
 ) -> None:
-    """One row per baseline x run x view set x metric: the paired difference as a fraction, its 95 % CI.
-    ``baselines``: the runs compared with (default: those of :data:`BASELINES` among ``rows``)."""
+    """One row per baseline x run x view set x metric: the paired difference as a fraction, its 95 % CI (with
+    ``agree``, empty over one seed). ``baselines``: the runs compared with (default: those of :data:`BASELINES` among ``rows``)."""
     if baselines is None:
         baselines = [b for b in BASELINES if b in rows.values()]
-    with path.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["baseline", "run", "view_set", "metric", "mean", "ci_low", "ci_high", "seeds", "agree"])
-        for baseline in baselines:
-            for metric in METRICS:
-                by_title = paired_differences(rows, baseline, payloads, metric, seeds)
-                for title, per_set in by_title.items():
-                    for view_set, estimate in per_set.items():
-                        if estimate is None:
-                            continue
-                        writer.writerow(
-                            [baseline, rows[title], view_set, metric]
-                            + [repr(v) for v in (estimate.mean, estimate.low, estimate.high)]
-                            + [estimate.n, estimate.agree]
-                        )
+    table = []
+    for baseline in baselines:
+        for metric in METRICS:
+            by_title = paired_differences(rows, baseline, payloads, metric, seeds)
+            for title, per_set in by_title.items():
+                for view_set, estimate in per_set.items():
+                    if estimate is None:
+                        continue
+                    table.append(
+                        [baseline, rows[title], view_set, metric]
+                        + [repr(v) if math.isfinite(v) else "" for v in (estimate.mean, estimate.low, estimate.high)]
+                        + [estimate.n, estimate.agree if estimate.n > 1 else ""]  # one seed: no interval, no count
+                    )
+    header = ["baseline", "run", "view_set", "metric", "mean", "ci_low", "ci_high", "seeds", "agree"]
+    write_csv(path, table, header)
 
 
 def write_chart(
@@ -156,7 +155,7 @@ def write_chart(
         ax.grid(axis="y", alpha=0.3)
     if bottom and len(baselines) == 1 and columns == 2:
         grid[1][1].set_axis_off()
-    fig.savefig(path)
+    save_figure(fig, path)
     return fig
 
 

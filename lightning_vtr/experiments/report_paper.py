@@ -10,23 +10,28 @@ seed) is empty in CSV and ``null`` in JSON.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import platform
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, cast
 
 from lightning_vtr.evaluation.tables import VIEW_SET_TITLES
 from lightning_vtr.experiments.report_config import METRICS
-from lightning_vtr.experiments.report_tables import metric_value, run_values, seed_estimate
+from lightning_vtr.experiments.report_tables import (
+    NO_INTERVAL,
+    interval_text,
+    metric_value,
+    run_values,
+    seed_estimate,
+    separated_best,
+)
 from lightning_vtr.experiments.statistics import Estimate
 from lightning_vtr.protocol import VIEW_SETS
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write, csv_text
 
 __all__ = [
     "METRIC_TITLES",
@@ -57,7 +62,8 @@ def _finite(value: float | None) -> float | None:
 
 def estimate_record(estimate: Estimate | None) -> dict[str, Any] | None:
     """An :class:`~lightning_vtr.experiments.statistics.Estimate` as JSON: ``mean``, ``half_width``, ``ci_low``,
-    ``ci_high`` (``null`` over one seed), ``seeds`` and ``agree``; ``None`` for no estimate."""
+    ``ci_high``, ``seeds`` and ``agree`` (the interval and the sign count ``null`` over one seed); ``None`` for no
+    estimate."""
     if estimate is None:
         return None
     return {
@@ -66,7 +72,7 @@ def estimate_record(estimate: Estimate | None) -> dict[str, Any] | None:
         "ci_low": _finite(estimate.low),
         "ci_high": _finite(estimate.high),
         "seeds": estimate.n,
-        "agree": estimate.agree,
+        "agree": estimate.agree if estimate.n > 1 else None,
     }
 
 
@@ -85,12 +91,7 @@ def table1_estimates(
 
 def write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
     """Write a CSV file atomically; floats as ``repr`` (every digit), ``None`` as an empty cell."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
-    for row in rows:
-        writer.writerow(["" if v is None else repr(v) if isinstance(v, float) else v for v in row])
-    atomic_write(path, buffer.getvalue())
+    atomic_write(path, csv_text((["" if v is None else v for v in row] for row in rows), header))
 
 
 def table1_csv(rows: dict[str, str], estimates: dict[str, dict[str, dict[str, Estimate | None]]]) -> list[list[Any]]:
@@ -131,15 +132,19 @@ def table1_latex(
     metrics: Sequence[str] = TABLE1_LATEX_METRICS,
     *,
     caption: str = "",
+    bold: Mapping[tuple[str, str], str | None] | None = None,
 ) -> str:
     r"""Table 1 as a booktabs ``tabular``: a row per strategy, the columns Aligned / Hemispherical / Spherical x
     ``metrics``, each cell ``mean $\pm$ half-width`` of the 95 % CI over seeds in percent (the mean alone over
-    one seed), the best mean of each column in bold.
+    one seed); in bold, in each column, the row a confidence interval separates from the others (``bold``).
 
     Args:
         estimates: :func:`table1_estimates`' numbers.
         metrics: the metrics per view set, in column order.
         caption: a comment line above the table (``%`` lines; LaTeX ignores them).
+        bold: ``{(view_set, metric): row title or None}``, the row to set in bold per column
+            (:func:`~lightning_vtr.experiments.report_tables.separated_best`: the best mean, when its paired
+            difference to every other row has a 95 % CI above zero); ``None``: no bold.
 
     Returns:
         The LaTeX text (needs ``\usepackage{booktabs}``), ending with a newline.
@@ -148,20 +153,13 @@ def table1_latex(
 
         print(table1_latex(table1_estimates({"None-VTR": "none"}, payloads, [0, 1, 2])))
     """
-    best = {
-        (v, m): max(
-            (e[v][m].mean for e in estimates.values() if e[v][m] is not None and math.isfinite(e[v][m].mean)),  # type: ignore[union-attr]
-            default=None,
-        )
-        for v in VIEW_SETS
-        for m in metrics
-    }
+    bold = bold or {}
 
-    def cell(estimate: Estimate | None, view_set: str, metric: str) -> str:
+    def cell(title: str, estimate: Estimate | None, view_set: str, metric: str) -> str:
         if estimate is None or not math.isfinite(estimate.mean):
             return "--"
         text = f"{100 * estimate.mean:.2f}"
-        if best[view_set, metric] == estimate.mean:
+        if bold.get((view_set, metric)) == title:
             text = rf"\textbf{{{text}}}"
         if math.isfinite(estimate.half_width):
             text += rf" $\pm$ {100 * estimate.half_width:.2f}"
@@ -178,7 +176,7 @@ def table1_latex(
         r"\midrule",
     ]
     for title, per_set in estimates.items():
-        cells = [cell(per_set[v][m], v, m) for v in VIEW_SETS for m in metrics]
+        cells = [cell(title, per_set[v][m], v, m) for v in VIEW_SETS for m in metrics]
         lines.append(" & ".join([_latex_text(title), *cells]) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(lines) + "\n"
@@ -271,7 +269,7 @@ def category_markdown(estimates: dict[str, dict[str, dict[str, Estimate | None]]
     """``categories.md``: per view set, a table of mean IoU\\@0.4 (%) with a row per category and a column per
     strategy (``mean ± 95 % CI half-width`` over several seeds)."""
     titles = list(next(iter(estimates.values()))) if estimates else []
-    interval = f"mean ± 95 % CI over {seeds} seeds" if seeds > 1 else "one seed"
+    interval = interval_text(seeds, "over {n} seeds")
     lines = [f"# Per-category results: mIoU@0.4 (%, test set; {interval})"]
     if not estimates:
         return "\n".join([*lines, "", "The runs logged no per-category results."]) + "\n"
@@ -473,13 +471,17 @@ def write_paper_files(
         name -> path of every file written here.
     """
     from lightning_vtr.experiments.report_render import equivalent_command
-    from lightning_vtr.experiments.report_tables import difference_table, paired_differences, robustness_table
+    from lightning_vtr.experiments.report_tables import (
+        difference_note,
+        difference_table,
+        paired_differences,
+        robustness_table,
+    )
 
     out = Path(config.experiment.out)
     seeds, rows, payloads = list(config.seeds), summary.rows, results.payloads
     titles = config.titles()
-    several = len(seeds) > 1
-    interval = f"mean ± 95 % CI over {len(seeds)} seeds (Student t)" if several else "one seed"
+    interval = interval_text(len(seeds))
     command = config.command or equivalent_command(config)
     paths = {
         "table1_markdown": out / "table1.md",
@@ -498,20 +500,21 @@ def write_paper_files(
         ["method", "run", "view_set", "metric", "mean", "half_width", "ci_low", "ci_high", "seeds"],
         table1_csv(rows, table1),
     )
-    atomic_write(paths["table1_latex"], table1_latex(table1, caption=f"{heading}\n{command}"))
+    bold = separated_best(rows, payloads, seeds, TABLE1_LATEX_METRICS)
+    caption = f"{heading}\nbold: the row whose paired difference to every other row has a 95 % CI above zero"
+    if len(seeds) < 2:
+        caption += f" (none: {NO_INTERVAL})"
+    latex = table1_latex(table1, caption=f"{caption}\n{command}", bold=bold)
+    atomic_write(paths["table1_latex"], latex)
 
     baselines = list(summary.differences)
     differences = {b: {m: paired_differences(rows, b, payloads, m, seeds) for m in METRICS} for b in baselines}
     markdown = ["# Paired differences (mIoU@0.4 points, test set)"]
     latex = [f"% {command}"]
     for baseline in baselines:
-        note = (
-            f"Per seed, each strategy minus {titles[baseline]}: the same pretrained model and the same test items. "
-            "Each cell: the mean difference, its 95 % CI over seeds (with 2+ seeds) and how many seeds agree "
-            "with the mean's sign."
-        )
+        note = difference_note(titles[baseline], len(seeds))
         markdown += ["", f"## Paired difference to {titles[baseline]}", "", note, ""]
-        markdown.append(difference_table(differences[baseline]["iou@0.4"]))
+        markdown.append(difference_table(differences[baseline]["iou@0.4"], len(seeds)))
         caption = f"Paired difference to {titles[baseline]} (mIoU@0.4 points, {interval})"
         latex.append(difference_latex(differences[baseline]["iou@0.4"], caption=caption))
     atomic_write(paths["differences_markdown"], "\n".join(markdown) + "\n")

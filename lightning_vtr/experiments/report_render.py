@@ -13,23 +13,23 @@ from lightning_vtr.experiments.report_config import BASELINES, MAIN_K, METRICS, 
 from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.experiments.report_run import ReportResults
 from lightning_vtr.experiments.report_tables import (
+    difference_note,
     difference_table,
+    interval_text,
     paired_differences,
+    plural,
     pooled_views,
     robustness_table,
     view_statistics,
     view_table,
 )
 from lightning_vtr.experiments.report_timing import time_tables
+from lightning_vtr.models.registry import MODELS
 
 __all__ = ["ReportSummary", "equivalent_command", "render_markdown", "summarize"]
 
-_TEST_NOTE = (
-    "Per seed, each strategy minus {baseline}: the same pretrained model and the same test items. Each cell: "
-    "the mean difference, its 95 % CI over seeds (with 2+ seeds) and how many seeds agree with the mean's sign."
-)
 _VALIDATION_NOTE = (
-    "The same models on the validation objects, each on {repeats} fixed view set(s): "
+    "The same models on the validation objects, each on {repeats}: "
     "choose among strategies here, and read the test-split tables above as the confirmation, so that no "
     "choice is tuned on the test split. Cells as above."
 )
@@ -125,18 +125,24 @@ def render_markdown(
 def _header(config: ReportConfig, timing: dict[str, Any]) -> list[str]:
     exp, seeds = config.experiment, config.seeds
     total, wall = sum(timing["invocations"]), timing["invocations"][-1]
+    model = exp.model if exp.model not in MODELS else f"{exp.model} ({exp.preset})"
+    arguments = ", ".join(f"{k}={v!r}" for k, v in exp.model_kwargs.items())
+    if arguments:
+        model += f" with {arguments}"
+    if exp.image_size is not None:
+        model += f" at {exp.image_size} px"
     return [
         "# View transformation robustness report",
         "",
         f"Command: `{config.command or equivalent_command(config)}`",
         "",
-        f"Budget: {exp.model} ({exp.preset}) on {exp.data or 'the embedded procedural dataset'}; "
-        f"seeds {', '.join(map(str, seeds))}; pretraining {exp.pretrain_epochs} epochs on Aligned, then "
-        f"{exp.finetune_epochs} fine-tuning epochs per strategy ({exp.finetune_lr} learning rate); "
-        f"{100 * exp.fraction:g} % of training objects given new views per selection; every test object "
-        f"tested on {exp.test_repeats} fixed view set(s), the same for every strategy of a seed. "
-        f"Total wall time: {total / 60:.1f} min over {len(timing['invocations'])} invocation(s) "
-        f"(this one {wall / 60:.1f} min).",
+        f"Budget: {model} on {exp.data or 'the embedded procedural dataset'}; "
+        f"{'seed' if len(seeds) == 1 else 'seeds'} {', '.join(map(str, seeds))}; pretraining "
+        f"{plural(exp.pretrain_epochs, 'epoch')} on Aligned, then {plural(exp.finetune_epochs, 'fine-tuning epoch')} "
+        f"per strategy ({exp.finetune_lr} learning rate); {100 * exp.fraction:g} % of training objects given new "
+        f"views per selection; every test object tested on {plural(exp.test_repeats, 'fixed view set')}, the same "
+        f"for every strategy of a seed. Total wall time: {total / 60:.1f} min over "
+        f"{plural(len(timing['invocations']), 'invocation')} (this one {wall / 60:.1f} min).",
     ]
 
 
@@ -144,7 +150,7 @@ def _main_table(
     config: ReportConfig, runs: list[ReportRun], results: ReportResults, summary: ReportSummary
 ) -> list[str]:
     seeds = list(config.seeds)
-    interval = "mean ± 95 % CI over seeds (Student t)" if len(seeds) > 1 else "one seed"
+    interval = interval_text(len(seeds), "over seeds (Student t)")
     sections = [
         "",
         f"## Table 1: robustness to view transformations (%, test set; {interval})",
@@ -168,11 +174,13 @@ def _main_table(
 
 def _difference_sections(config: ReportConfig, summary: ReportSummary) -> list[str]:
     sections: list[str] = []
+    seeds = len(config.seeds)
+    repeats = plural(config.validation_repeats or 0, "fixed view set")
     headed = (
-        ("Paired difference to {baseline} (mIoU points)", _TEST_NOTE, summary.differences),
+        ("Paired difference to {baseline} (mIoU points)", None, summary.differences),
         (
             "Validation split: paired difference to {baseline} (mIoU points)",
-            _VALIDATION_NOTE.replace("{repeats}", str(config.validation_repeats)),
+            _VALIDATION_NOTE.replace("{repeats}", repeats),
             summary.validation_differences,
         ),
     )
@@ -180,8 +188,9 @@ def _difference_sections(config: ReportConfig, summary: ReportSummary) -> list[s
         for baseline, by_title in tables.items():
             if by_title:
                 title = config.titles()[baseline]
-                sections += ["", "## " + heading.format(baseline=title), "", note.format(baseline=title), ""]
-                sections.append(difference_table(by_title))
+                text = difference_note(title, seeds) if note is None else note
+                sections += ["", "## " + heading.format(baseline=title), "", text, ""]
+                sections.append(difference_table(by_title, seeds))
     return sections
 
 
@@ -217,30 +226,64 @@ def _ablation_sections(config: ReportConfig, results: ReportResults) -> list[str
     return sections
 
 
+#: The flags :func:`equivalent_command` always writes, even at their defaults, so that the command reads whole.
+_ALWAYS = ("model", "out", "seeds", "pretrain_epochs", "finetune_epochs", "strategies", "fraction", "test_repeats")
+
+
+def _flag_words(name: str, value: Any, spec: dict[str, Any]) -> list[str]:
+    from lightning_vtr.experiments.flags import option
+
+    if isinstance(value, bool):
+        return [option(name)] if value else []
+    if isinstance(value, (list, tuple)):
+        if not value:
+            return []
+        return (
+            [option(name), ",".join(map(str, value))] if spec["comma_separated"] else [option(name), *map(str, value)]
+        )
+    return [option(name), str(value)]
+
+
 def equivalent_command(config: ReportConfig) -> str:
-    """The ``lightning-vtr report`` command line that runs ``config``."""
-    exp = config.experiment
-    words = ["lightning-vtr", "report", "--model", exp.model, "--preset", exp.preset]
-    if exp.data:
-        words += ["--data", exp.data]
-    words += ["--out", exp.out, "--seeds", *map(str, config.seeds)]
-    words += ["--pretrain-epochs", str(exp.pretrain_epochs), "--finetune-epochs", str(exp.finetune_epochs)]
-    words += ["--strategies", ",".join(config.strategies), "--fraction", str(exp.fraction)]
-    if config.strategies_file is not None:
-        words += ["--strategies-file", str(config.strategies_file)]
-        if config.only_strategies_file:
-            words.append("--only-strategies-file")
-    words += ["--test-repeats", str(exp.test_repeats)]
-    if exp.finetune_lr != "cosine":
-        words += ["--finetune-lr", exp.finetune_lr]
-    if config.ablations:
-        words += ["--ablations", ",".join(config.ablations)]
-    if config.validation_repeats is not None:
-        words += ["--validation-repeats", str(config.validation_repeats)]
-    if config.reference is not None:
-        words += ["--reference", config.reference]
-    if config.maps:
-        words += ["--maps", "--map-k", str(config.map_k), "--map-objects", str(config.map_objects)]
-    if config.jobs > 1:
-        words += ["--jobs", str(config.jobs)]
+    """The ``lightning-vtr report`` command line that runs ``config`` again: the same experiment and report
+    settings, so that it reuses the runs ``config`` wrote and writes the same ``report.json`` settings.
+
+    Every flag whose value differs from the command's default is written, and the flags of :data:`_ALWAYS`
+    regardless; ``--preset`` for a registered model (a class of yours takes no preset, so it is written only when
+    not the default), ``--model-arg KEY=VALUE`` per model argument, ``--jobs`` always (the command's default
+    depends on the machine), ``--no-progress`` when the fits show no progress bar. Settings without a flag
+    (``k_values``, ``selector_kwargs``, ``callback_kwargs``, ``synthesizer`` and the experiment's ``embedded`` and
+    other ``trainer_kwargs``) cannot be written; ``report.json`` records them.
+
+    Example:
+        >>> from lightning_vtr.experiments.report_config import default_experiment
+        >>> config = ReportConfig(default_experiment(model="mine.Net", image_size=64, model_kwargs={"width": 8}), seeds=[0])
+        >>> print(equivalent_command(config))  # doctest: +NORMALIZE_WHITESPACE
+        lightning-vtr report --model mine.Net --pretrain-epochs 30 --finetune-epochs 10 --image-size 64
+            --fraction 0.05 --test-repeats 4 --out runs/report --model-arg width=8 --seeds 0
+            --strategies none,random,random_area,paper,error_guided --jobs 1
+    """
+    from lightning_vtr.experiments.flags import flag_fields, yaml_word
+    from lightning_vtr.experiments.report_config import default_experiment
+
+    exp, defaults = config.experiment, default_experiment()
+    words = ["lightning-vtr", "report"]
+    for f in flag_fields(type(exp), exclude=("seed",)):
+        value, default = getattr(exp, f.name), getattr(defaults, f.name)
+        if f.name == "preset":
+            keep = exp.model in MODELS or value != default
+        else:
+            keep = f.name in _ALWAYS or str(value) != str(default)
+        if keep and value is not None:
+            words += _flag_words(f.name, value, f.metadata["flag"])
+    for key, value in exp.model_kwargs.items():
+        words += ["--model-arg", f"{key}={yaml_word(value)}"]
+    if exp.trainer_kwargs.get("enable_progress_bar") is False:
+        words.append("--no-progress")
+    for f in flag_fields(type(config)):
+        value, default = getattr(config, f.name), f.default
+        if isinstance(value, (list, tuple)):
+            value, default = list(value), list(default)  # type: ignore[call-overload]
+        if value is not None and (f.name == "jobs" or f.name in _ALWAYS or value != default):
+            words += _flag_words(f.name, value, f.metadata["flag"])
     return shlex.join(words)

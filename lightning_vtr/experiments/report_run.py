@@ -18,7 +18,7 @@ from lightning_vtr.experiments import training
 from lightning_vtr.experiments.config import ExperimentConfig
 from lightning_vtr.experiments.report_config import ReportConfig
 from lightning_vtr.experiments.report_plan import ReportRun
-from lightning_vtr.utils.io import atomic_write
+from lightning_vtr.utils.io import atomic_write, open_append
 from lightning_vtr.utils.paths import join_under
 
 __all__ = ["ReportResults", "execute_runs", "read_json", "single_view", "write_json"]
@@ -149,7 +149,7 @@ def _fit_unit(config: ReportConfig, seed: int, run: ReportRun | None, threads: i
     log = _log_path(config, seed, run)
     log.parent.mkdir(parents=True, exist_ok=True)
     with (
-        open(log, "a", buffering=1) as stream,
+        open_append(log) as stream,
         contextlib.redirect_stdout(stream),
         contextlib.redirect_stderr(stream),
         _log_handlers_to(stream),

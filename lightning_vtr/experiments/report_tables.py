@@ -24,13 +24,19 @@ from lightning_vtr.experiments.statistics import (
 from lightning_vtr.protocol import VIEW_SETS
 
 __all__ = [
+    "NO_INTERVAL",
+    "difference_note",
     "difference_table",
+    "interval_text",
     "metric_value",
     "paired_differences",
+    "plural",
     "pooled_views",
     "robustness_table",
     "run_values",
     "seed_estimate",
+    "separated_best",
+    "verdict",
     "view_statistics",
     "view_table",
 ]
@@ -89,22 +95,124 @@ def paired_differences(
     return out
 
 
-def _format_difference(estimate: Estimate | None) -> str:
-    """``"+2.80 [0.80, 4.80], 3/3"`` in percentage points: mean, 95 % CI (with 2+ seeds), seeds agreeing in sign."""
+NO_INTERVAL = "1 seed: no interval"
+"""What the report says instead of a confidence interval when it has one seed."""
+
+
+def plural(count: int, word: str, words: str | None = None) -> str:
+    """``"1 epoch"``, ``"2 epochs"``: ``count`` and ``word``, or its plural (``words``; default ``word + "s"``).
+
+    Example:
+        >>> plural(1, "epoch"), plural(3, "epoch"), plural(2, "view set")
+        ('1 epoch', '3 epochs', '2 view sets')
+    """
+    return f"{count} {word if count == 1 else words or word + 's'}"
+
+
+def interval_text(seeds: int, over: str = "over {n} seeds (Student t)") -> str:
+    """How a table states its spread: ``"mean ± 95 % CI over 3 seeds (Student t)"``, or :data:`NO_INTERVAL`.
+
+    Example:
+        >>> interval_text(3), interval_text(1)
+        ('mean ± 95 % CI over 3 seeds (Student t)', '1 seed: no interval')
+    """
+    return f"mean ± 95 % CI {over.format(n=seeds)}" if seeds > 1 else NO_INTERVAL
+
+
+def verdict(estimate: Estimate) -> str | None:
+    """Where a paired difference's 95 % CI lies: ``"above"`` zero, ``"below"`` it, or ``"level"`` (it holds zero:
+    no difference shown); ``None`` without an interval (one seed).
+
+    Example:
+        >>> verdict(Estimate(0.02, 0.01, 3, 3)), verdict(Estimate(0.02, 0.03, 3, 2)), verdict(Estimate(0.02, math.nan, 1, 1))
+        ('above', 'level', None)
+    """
+    if not math.isfinite(estimate.half_width):
+        return None
+    return "above" if estimate.low > 0 else "below" if estimate.high < 0 else "level"
+
+
+def _format_difference(estimate: Estimate | None, note_one_seed: bool = True) -> str:
+    """``"+2.80 [+0.80, +4.80] above, 3/3"`` in percentage points: the mean, the 95 % CI, where the interval lies
+    (:func:`verdict`) and how many seeds agree with the mean's sign; over one seed the mean alone (with
+    :data:`NO_INTERVAL` unless ``note_one_seed`` is off: the table's note says it)."""
     if estimate is None:
         return "-"
     text = f"{100 * estimate.mean:+.2f}"
-    if math.isfinite(estimate.half_width):
-        text += f" [{100 * estimate.low:+.2f}, {100 * estimate.high:+.2f}]"
-    return f"{text}, {estimate.agree}/{estimate.n}"
+    word = verdict(estimate)
+    if word is None:
+        return f"{text} ({NO_INTERVAL})" if note_one_seed else text
+    return f"{text} [{100 * estimate.low:+.2f}, {100 * estimate.high:+.2f}] {word}, {estimate.agree}/{estimate.n}"
 
 
-def difference_table(differences: dict[str, dict[str, Estimate | None]]) -> str:
+def difference_note(baseline: str, seeds: int) -> str:
+    """The note above a table of paired differences to ``baseline`` (a row title) over ``seeds`` seeds.
+
+    Example:
+        >>> difference_note("None-VTR", 1).endswith("1 seed: no interval, so no cell says whether its difference is more than noise.")
+        True
+    """
+    head = f"Per seed, each strategy minus {baseline}: the same pretrained model and the same test items."
+    if seeds < 2:
+        return (
+            f"{head} Each cell: the one seed's difference; {NO_INTERVAL}, so no cell says whether its difference "
+            "is more than noise."
+        )
+    return (
+        f"{head} Each cell: the mean difference, its 95 % CI over seeds, where that interval lies (above zero: "
+        '"above"; below zero: "below"; holding zero: "level", no difference shown) and how many seeds agree with '
+        "the mean's sign."
+    )
+
+
+def difference_table(differences: dict[str, dict[str, Estimate | None]], seeds: int = 2) -> str:
+    """A Markdown table of paired differences, a row per strategy and a column per view set
+    (:func:`_format_difference` cells; over one seed the means alone, the note saying :data:`NO_INTERVAL`)."""
     header = ["Method", *(VIEW_SET_TITLES[v] for v in VIEW_SETS)]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for title, per_set in differences.items():
-        lines.append("| " + " | ".join([title, *(_format_difference(per_set[v]) for v in VIEW_SETS)]) + " |")
+        cells = [_format_difference(per_set[v], note_one_seed=seeds > 1) for v in VIEW_SETS]
+        lines.append("| " + " | ".join([title, *cells]) + " |")
     return "\n".join(lines)
+
+
+def separated_best(
+    rows: dict[str, str], payloads: dict[str, dict[int, dict]], seeds: list[int], metrics: Sequence[str]
+) -> dict[tuple[str, str], str | None]:
+    """Per ``(view_set, metric)``, the row a confidence interval separates from every other, or ``None``.
+
+    The row with the best mean over seeds counts as best only when its paired difference to each other row (the
+    same seeds' pretrained models and test items) has a 95 % CI above zero; rows that are level with it leave the
+    column without a best. One seed has no interval: no row is separated.
+
+    Args:
+        rows: row title -> run name.
+        payloads: ``{run: {seed: results.json payload}}``.
+        seeds: the seeds.
+        metrics: the metrics of the columns.
+
+    Returns:
+        ``{(view_set, metric): row title or None}``.
+
+    Example::
+
+        bold = separated_best({"None-VTR": "none", "Ours": "mine"}, payloads, [0, 1, 2], ["iou@0.4"])
+    """
+    out: dict[tuple[str, str], str | None] = {}
+    for view_set in VIEW_SETS:
+        for metric in metrics:
+            values = {title: run_values(payloads, run, view_set, metric, seeds) for title, run in rows.items()}
+            means = {title: math.fsum(v.values()) / len(v) for title, v in values.items() if v}
+            best = max(means, key=lambda title: means[title]) if len(means) > 1 else None
+            for title in means:
+                if best is None or title == best:
+                    continue
+                shared = set(values[best]) & set(values[title])
+                difference = paired_difference(values[best], values[title]) if shared else None
+                if difference is None or verdict(difference) != "above":
+                    best = None
+            out[view_set, metric] = best
+    return out
 
 
 def view_statistics(view_sets: Any) -> dict[str, Any]:

@@ -69,6 +69,11 @@ _RESERVED_CALLBACK_KEYS = {
 """Callback arguments a row may not set: the report supplies them, or they depend on a dataset's size."""
 
 
+#: The most views a row's selector may ask for per generated sample (``num_views``): each view is rendered or
+#: synthesized, so a larger number is a typo that would otherwise surface only after the pretraining.
+MAX_ROW_VIEWS = 64
+
+
 class StrategyFileError(DataError):
     """A strategies file is not valid YAML or a row is not a valid strategy (names the file and the row)."""
 
@@ -316,6 +321,13 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
         _unknown(f"{where}, {label}", selector_kwargs, _parameters(cls))
         for key, value in selector_kwargs.items():
             _check_nested(value, f"{where}, {label}, {key}")
+        views = selector_kwargs.get("num_views")
+        if views is not None and (
+            isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= MAX_ROW_VIEWS
+        ):
+            raise StrategyFileError(
+                f"{where}, {label}: `num_views` must be an integer in [1, {MAX_ROW_VIEWS}], got {views!r}"
+            )
         callback_kwargs = row.get("callback_kwargs", {})
         for key, reason in _RESERVED_CALLBACK_KEYS.items():
             if key in callback_kwargs:

@@ -33,7 +33,7 @@ from lightning_vtr.experiments.strategies import (
 )
 from lightning_vtr.models.base import VoxelReconstructionModule
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
-from lightning_vtr.models.registry import MODELS, check_model, model_class
+from lightning_vtr.models.registry import MODELS, check_model, model_class, read_checkpoint
 from lightning_vtr.selection import SELECTORS, make_selector
 from lightning_vtr.utils.io import atomic_write
 from lightning_vtr.utils.paths import join_under
@@ -451,18 +451,44 @@ def pretrain(config: ExperimentConfig) -> Path:
     trainer = _trainer(config, run_dir, config.pretrain_epochs, [timer, checkpoints])
     last = run_dir / "checkpoints" / "last.ckpt"
     resumed = last.is_file()
-    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resumed else None)
+    if resumed:  # an earlier output is data: read as tensors and plain containers, never as a full pickle
+        read_checkpoint(last, _EARLIER_OUTPUT, remedy=_REMEDY)
+    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resumed else None, weights_only=True)
     if trainer.is_global_zero:
         _write_timing(run_dir / "timing.json", timer, resumed=resumed)
     # `pretrained.ckpt` marks the pretraining done, so it must appear whole or not at all. Lightning writes
     # to a path (every rank joins, rank 0 writes), so the checkpoint goes to a scratch file first.
     scratch = run_dir / "pretrained.partial.ckpt"
+    if trainer.is_global_zero:
+        scratch.unlink(missing_ok=True)  # Lightning opens the path itself: never a link an earlier output left there
+    trainer.strategy.barrier("pretrained.partial.ckpt")
     trainer.save_checkpoint(scratch, weights_only=True)
     if trainer.is_global_zero:
         atomic_write(ckpt, scratch.read_bytes())
         scratch.unlink()
     trainer.strategy.barrier("pretrained.ckpt")
     return ckpt
+
+
+#: How the messages name a checkpoint of an earlier output folder that the run resumes from.
+_EARLIER_OUTPUT = "a checkpoint of the earlier output in `--out`"
+#: What the messages advise for a checkpoint of an earlier output that is not one this package wrote.
+_REMEDY = "delete it, or use another `--out`, to train it again"
+
+
+def _state_dict(checkpoint: Path) -> dict[str, Any]:
+    """The ``state_dict`` of a checkpoint this module wrote, read with ``weights_only=True``.
+
+    Raises:
+        DataError: the file is not a checkpoint torch reads as tensors and plain containers (one line naming it
+            and, for a full pickle, the globals it holds).
+    """
+    from lightning_vtr.errors import DataError
+
+    state = read_checkpoint(checkpoint, _EARLIER_OUTPUT, remedy=_REMEDY).get("state_dict")
+    if not isinstance(state, dict):
+        raise DataError(f"{_EARLIER_OUTPUT} must hold a state_dict, got {str(checkpoint)!r}: {_REMEDY}")
+    return state
 
 
 def _write_timing(path: Path, timer: StageTimer, **extra: Any) -> None:
@@ -615,9 +641,21 @@ _PLACEMENT = frozenset({"out", "accelerator", "devices", "num_workers"})
 """ExperimentConfig fields that say where and on what a run happens, not what it measures."""
 
 
+_DISPLAY_TRAINER_KWARGS = frozenset({"enable_progress_bar"})
+"""``trainer_kwargs`` that change what a run shows, not what it measures (``lightning-vtr report --no-progress``)."""
+
+
 def _comparable(config: ExperimentConfig) -> dict[str, Any]:
     """``config`` as it reads back from ``results.json``."""
     return json.loads(json.dumps(asdict(config), default=str))
+
+
+def _measured(config: dict[str, Any]) -> dict[str, Any]:
+    """A :func:`_comparable` config without the ``trainer_kwargs`` that only change what a run shows."""
+    trainer_kwargs = config.get("trainer_kwargs")
+    if not isinstance(trainer_kwargs, dict):
+        return config
+    return {**config, "trainer_kwargs": {k: v for k, v in trainer_kwargs.items() if k not in _DISPLAY_TRAINER_KWARGS}}
 
 
 def run_strategy(
@@ -658,7 +696,8 @@ def run_strategy(
 
     Raises:
         ValueError: the run's cached ``results.json`` was written with another configuration (fields other than
-            ``out``, ``accelerator``, ``devices`` and ``num_workers`` differ), ``name`` is not in
+            ``out``, ``accelerator``, ``devices``, ``num_workers`` and ``trainer_kwargs["enable_progress_bar"]``
+            differ), ``name`` is not in
             :data:`VARIANTS` (without ``callback``), or ``config.model`` is not in :data:`MODELS`.
         lightning_vtr.utils.paths.UnsafePathError: the run's directory resolves outside ``config.out`` (a symlink
             leading out).
@@ -675,9 +714,9 @@ def run_strategy(
         cached = json.loads(result_file.read_text())
         # A cache is only a result of *this* configuration: refuse one written under another. Where the
         # run lives and what hardware it used do not change what it measures.
-        current, saved = _comparable(config), cached.get("config", {})
+        current, saved = _measured(_comparable(config)), cached.get("config", {})
         # a field added in a later version, absent from an older cache, measured its default
-        saved = {**{k: v for k, v in _comparable(ExperimentConfig()).items() if k not in saved}, **saved}
+        saved = _measured({**{k: v for k, v in _comparable(ExperimentConfig()).items() if k not in saved}, **saved})
         changed = sorted(k for k in (current.keys() | saved.keys()) - _PLACEMENT if current.get(k) != saved.get(k))
         if changed:
             raise ValueError(
@@ -687,7 +726,7 @@ def run_strategy(
         return cached
     L.seed_everything(config.seed, workers=True, verbose=False)
     model = make_model(config, fine_tuning=True)
-    model.load_state_dict(torch.load(pretrained, map_location="cpu", weights_only=False)["state_dict"])
+    model.load_state_dict(_state_dict(pretrained))
     dm = make_datamodule(config, model)
     if callback is None:
         callback = make_strategy(name, config, synthesizer, selector_kwargs, callback_kwargs, variants=variants)
@@ -698,8 +737,10 @@ def run_strategy(
         callbacks.append(CosineFineTuning(config.finetune_epochs))
     trainer = _trainer(config, run_dir, config.finetune_epochs, callbacks)
     last = run_dir / "checkpoints" / "last.ckpt"
+    if last.is_file():
+        read_checkpoint(last, _EARLIER_OUTPUT, remedy=_REMEDY)
     start = time.perf_counter()
-    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None)
+    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if last.is_file() else None, weights_only=True)
     train_seconds = time.perf_counter() - start
     start = time.perf_counter()
     results = evaluate(model, dm, config, run_dir, timer=timer)
@@ -739,7 +780,7 @@ def load_run_model(config: ExperimentConfig, run_dir: Path) -> L.LightningModule
     if not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint} does not exist: the run was not fitted by run_strategy")
     model = make_model(config, fine_tuning=True)
-    model.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"])
+    model.load_state_dict(_state_dict(checkpoint))
     return model
 
 

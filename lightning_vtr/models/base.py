@@ -203,7 +203,7 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         map_location: Any = None,
         hparams_file: str | os.PathLike | None = None,
         strict: bool | None = None,
-        weights_only: bool | None = None,
+        weights_only: bool | None = True,
         **kwargs: Any,
     ) -> Self:
         """Lightning's ``load_from_checkpoint``, with the model built inside
@@ -211,21 +211,23 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
 
         Pretrained weight files named by the hyperparameters (``backbone_weights``, ...) are not read:
         the checkpoint's state dict replaces every weight anyway, and the file may not exist on this
-        machine. Arguments are Lightning's (``weights_only`` needs Lightning >= 2.4).
+        machine. Arguments are Lightning's (``weights_only`` needs Lightning >= 2.4), except that ``weights_only``
+        defaults to ``True``: the file is read as tensors and plain containers, never as a full pickle (which can
+        run code in it), whatever ``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD`` says; pass ``weights_only=False`` only for a
+        file you trust.
 
         Raises:
             ValueError: ``checkpoint_path`` is a local checkpoint of another model class (e.g. an LRGT checkpoint
                 given to ``Pix2VoxPlusPlus``); the message names both classes and the path.
         """
         cls._refuse_another_models_checkpoint(checkpoint_path)
-        if weights_only is not None:
-            kwargs["weights_only"] = weights_only
         with restoring_checkpoint():
             return super().load_from_checkpoint(
                 checkpoint_path,  # type: ignore[arg-type]  # Lightning takes any PathLike
                 map_location=map_location,
                 hparams_file=hparams_file,  # type: ignore[arg-type]  # likewise
                 strict=strict,
+                weights_only=weights_only,
                 **kwargs,
             )
 
@@ -237,10 +239,12 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         whose ``__init__`` takes every stored hyperparameter when ``cls`` does not (a hyperparameter ``cls`` lacks
         alone may be an older release's name, so that is no proof). Streams, remote paths and files
         ``torch.load(weights_only=True)`` cannot read are left to Lightning, as is a checkpoint of no known class.
+        A ``_class_path`` outside ``lightning_vtr`` is never imported (only one already imported is looked up).
         """
         import importlib
         import inspect
         import pickle
+        import sys
 
         if not isinstance(checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
             return
@@ -268,10 +272,16 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
         class_path = hparams.get("_class_path")
         if isinstance(class_path, str):
             module, _, name = class_path.rpartition(".")
+            saved = class_path  # a checkpoint never makes us import a module outside lightning_vtr
             try:
-                saved = getattr(importlib.import_module(module), name)
+                if module.startswith("lightning_vtr.") and all(p.isidentifier() for p in class_path.split(".")):
+                    saved = getattr(importlib.import_module(module), name)
+                elif module in sys.modules:  # imported already: nothing runs
+                    saved = getattr(sys.modules[module], name)
             except (ImportError, AttributeError, ValueError):
                 saved = class_path
+            if saved == f"{cls.__module__}.{cls.__qualname__}":
+                return
         elif not takes_all(cls):
             importlib.import_module("lightning_vtr.models")  # the package's models are candidates once imported
             candidates = [c for c in dict.fromkeys(subclasses(VoxelReconstructionModule)) if not inspect.isabstract(c)]

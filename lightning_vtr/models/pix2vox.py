@@ -651,8 +651,9 @@ class Pix2VoxPlusPlus(VoxelReconstructionModule):
             )
         # The stride the weights were trained with (no parameters depend on it); a checkpoint without it was
         # trained with _LEGACY_MERGER_STRIDES. load_from_checkpoint(path, merger_stride=...) records its override there first.
+        # None (what LightningCLI records for the argument's default) is the preset's stride, which the model has.
         stride = hparams.get("merger_stride", _LEGACY_MERGER_STRIDES[self.preset])
-        if stride != self.merger.stride:
+        if stride is not None and stride != self.merger.stride:
             self._set_merger_stride(stride)
 
     def _set_merger_stride(self, stride: int) -> None:

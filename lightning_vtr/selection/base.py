@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from collections.abc import Callable
+import enum
+import inspect
+import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +24,15 @@ _PROBABILITIES_HINT = (
     "non-finite values mean the model diverged"
 )
 
-__all__ = ["SelectionContext", "ViewSelector", "check_categories", "view_set_losses"]
+__all__ = [
+    "SelectionContext",
+    "ViewSelector",
+    "check_categories",
+    "check_selection",
+    "constructor_settings",
+    "json_setting",
+    "view_set_losses",
+]
 
 
 def check_categories(categories: list[str], batch: int) -> list[str]:
@@ -51,6 +62,152 @@ def check_categories(categories: list[str], batch: int) -> list[str]:
     if len(categories) != batch:
         raise ValueError(f"`categories` must have one entry per object, got {len(categories)} for a batch of {batch}")
     return categories
+
+
+def json_setting(value: Any) -> Any:
+    """``value`` as a plain JSON value, for a selector's :meth:`ViewSelector.settings`.
+
+    ``None``, bools, ints, floats and strings are kept; tuples, lists and sets become lists, mappings dicts with
+    string keys (each element converted alike); a NumPy or torch number or array becomes its Python value or
+    nested list, an ``Enum`` its value, a path its string. A class or function becomes its import path
+    ``module.Name``; an object with a ``settings()`` method (a selector, a score) becomes
+    ``{"class_path": ..., "init_args": its settings}``; any other object its ``repr``, or its class path when
+    its class has no ``repr`` of its own (the default one holds a memory address, which would differ between
+    two runs of the same selector).
+
+    Args:
+        value: a constructor argument's value.
+
+    Returns:
+        A value :func:`json.dumps` writes as it is.
+
+    Example:
+        >>> json_setting((1, 2.5, "a")), json_setting({"lamp": torch.tensor(20.0)})
+        ([1, 2.5, 'a'], {'lamp': 20.0})
+        >>> json_setting(torch.nn.functional.relu), json_setting(object())
+        ('torch.nn.functional.relu', 'builtins.object')
+    """
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, enum.Enum):
+        return json_setting(value.value)
+    if isinstance(value, (Tensor, np.ndarray, np.generic)):
+        return json_setting(value.tolist())
+    if isinstance(value, Mapping):
+        return {str(k): json_setting(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_setting(v) for v in value]
+    if isinstance(value, (set, frozenset)):
+        return sorted((json_setting(v) for v in value), key=repr)
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, type) or inspect.isroutine(value):
+        return f"{value.__module__}.{value.__qualname__}"
+    settings = getattr(value, "settings", None)
+    if callable(settings):
+        return {"class_path": f"{type(value).__module__}.{type(value).__qualname__}", "init_args": settings()}
+    if type(value).__repr__ is object.__repr__:
+        return f"{type(value).__module__}.{type(value).__qualname__}"
+    return repr(value)
+
+
+def constructor_settings(obj: object) -> dict[str, Any]:
+    """The arguments of ``type(obj).__init__`` read back from ``obj``, as scikit-learn's ``get_params`` reads them.
+
+    Each named argument (not ``*args`` / ``**kwargs``) is read from the attribute of its name, or else of
+    ``_name``, and converted by :func:`json_setting`; an argument stored under neither name is left out (store it
+    under its own name, or override :meth:`ViewSelector.settings`, to have it recorded).
+
+    Args:
+        obj: a selector (or any object built from its constructor's arguments).
+
+    Returns:
+        ``{argument: JSON value}``, in constructor order; empty for a class without an ``__init__`` of its own.
+
+    Example:
+        >>> class Above:
+        ...     def __init__(self, pitch=60.0, yaws=(0, 90), *, jitter=None):
+        ...         self.pitch, self._yaws, self.jitter = pitch, yaws, jitter
+        >>> constructor_settings(Above(pitch=45.0))
+        {'pitch': 45.0, 'yaws': [0, 90], 'jitter': None}
+    """
+    try:
+        parameters = list(inspect.signature(type(obj).__init__).parameters.values())[1:]  # without `self`
+    except (TypeError, ValueError):  # a constructor without a signature (a builtin's)
+        return {}
+    out: dict[str, Any] = {}
+    for parameter in parameters:
+        if parameter.kind in (parameter.VAR_POSITIONAL, parameter.VAR_KEYWORD):
+            continue
+        for attribute in (parameter.name, f"_{parameter.name}"):
+            try:
+                value = getattr(obj, attribute)
+            except AttributeError:
+                continue
+            out[parameter.name] = json_setting(value)
+            break
+    return out
+
+
+def check_selection(selector: ViewSelector, views: Any, batch: int) -> Tensor:
+    """Check what ``selector.select`` returned for ``batch`` objects: the callback calls it right after each call.
+
+    The contract of :meth:`ViewSelector.select`: a floating-point (or integer) tensor of shape
+    ``(batch, selector.num_views, 2)`` holding finite (yaw, pitch) angles in degrees, every pitch in ``[-90, 90]``
+    (a yaw may be any finite angle; it is wrapped).
+
+    Args:
+        selector: the selector that returned ``views``.
+        views: its return value.
+        batch: the number of objects it was asked about.
+
+    Returns:
+        ``views`` as a floating-point tensor (an integer one converted).
+
+    Raises:
+        ValueError: one line naming the selector's class, what the contract expects and what it returned: another
+            type, shape or dtype, a NaN / infinite angle or a pitch outside ``[-90, 90]`` (with the first such
+            object and view).
+
+    Example:
+        >>> class Front(ViewSelector):
+        ...     num_views = 1
+        ...     def select(self, predicted, target, categories, generator=None, context=None):
+        ...         return torch.tensor([0.0, 30.0]).expand(predicted.shape[0], 2)
+        >>> check_selection(Front(), Front().select(torch.rand(2, 4, 4, 4), None, ["a", "b"]), 2)
+        Traceback (most recent call last):
+        ...
+        ValueError: Front.select must return viewpoints of shape (objects, num_views, 2) = (2, 1, 2), got (2, 2)
+    """
+    name = f"{type(selector).__name__}.select"
+    expected = (batch, selector.num_views, 2)
+    if not isinstance(views, Tensor):
+        raise ValueError(
+            f"{name} must return a torch.Tensor of shape (objects, num_views, 2) = {expected} (yaw, pitch in "
+            f"degrees), got {type(views).__module__}.{type(views).__qualname__}"
+        )
+    if tuple(views.shape) != expected:
+        raise ValueError(
+            f"{name} must return viewpoints of shape (objects, num_views, 2) = {expected}, got {tuple(views.shape)}"
+        )
+    if views.dtype == torch.bool or views.is_complex():
+        raise ValueError(f"{name} must return real (yaw, pitch) angles in degrees, got dtype {views.dtype}")
+    views = views.detach()
+    if not views.is_floating_point():
+        views = views.to(torch.get_default_dtype())
+    problems = (
+        (~torch.isfinite(views).all(dim=-1), "finite (yaw, pitch) angles"),
+        ((views[..., 1] < -90.0) | (views[..., 1] > 90.0), "pitches in [-90, 90] degrees"),
+    )
+    for bad, wanted in problems:
+        if bad.any():
+            obj, view = (int(i) for i in bad.nonzero()[0])
+            values = [float(v) for v in views[obj, view].tolist()]
+            raise ValueError(
+                f"{name} must return {wanted}, got {values} for object {obj}, view {view} "
+                f"({int(bad.sum())} of {bad.numel()} viewpoints)"
+            )
+    return views
 
 
 @dataclass
@@ -185,7 +342,9 @@ class ViewSelector(abc.ABC):
             context: the model and synthesizer, for a selector with :attr:`needs_context`; else ``None``.
 
         Returns:
-            ``(B, num_views, 2)`` (yaw, pitch) in degrees.
+            ``(B, num_views, 2)`` (yaw, pitch) in degrees, finite, every pitch in ``[-90, 90]`` (a yaw may be any
+            angle; it is wrapped). The callback checks it (:func:`check_selection`) and stops with one line naming
+            this class when it is not.
         """
 
     def settings(self) -> dict[str, Any]:
@@ -193,7 +352,13 @@ class ViewSelector(abc.ABC):
 
         Every value is a plain JSON value (number, string, bool, ``None``, list, or a dict of them), with every
         default resolved, so that two selectors with equal settings (and the same class) select alike. The class
-        name is not included. A subclass returns all of its constructor arguments; this base returns none.
+        name is not included. The callback records them (``settings.json``, its checkpointed rule, which a resume
+        compares) and ``lightning-vtr report`` writes them to ``report.json``.
+
+        This base derives them from the constructor, as scikit-learn's ``get_params`` does
+        (:func:`constructor_settings`): each argument of ``__init__`` read back from the attribute of its name (or
+        ``_name``), so a selector that stores its arguments under their own names needs no ``settings()`` of its
+        own. A subclass overrides it when its arguments are not stored that way.
 
         Returns:
             ``{argument: value}``, in constructor order.
@@ -202,8 +367,15 @@ class ViewSelector(abc.ABC):
             >>> from lightning_vtr.selection import RandomSelector
             >>> RandomSelector(num_views=2).settings()
             {'num_views': 2, 'mode': 'area', 'yaw_range': [-180.0, 180.0], 'pitch_range': [-90.0, 90.0]}
+            >>> class Above(ViewSelector):  # no settings() of its own
+            ...     def __init__(self, pitch: float = 60.0, num_views: int = 3):
+            ...         self.pitch, self.num_views = pitch, num_views
+            ...     def select(self, predicted, target, categories, generator=None, context=None):
+            ...         return torch.tensor([0.0, self.pitch]).expand(predicted.shape[0], self.num_views, 2)
+            >>> Above(pitch=45.0).settings()
+            {'pitch': 45.0, 'num_views': 3}
         """
-        return {}
+        return constructor_settings(self)
 
     def __repr__(self) -> str:
         """``ClassName(arg=value, ...)`` from :meth:`settings`."""

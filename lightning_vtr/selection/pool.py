@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from lightning_vtr.geometry import check_viewpoints, normalize_viewpoints, sample_uniform_viewpoints
+from lightning_vtr.utils.limits import read_json
 from lightning_vtr.utils.validation import check_choice, check_int, check_type
 
 __all__ = ["ViewpointPool"]
@@ -225,13 +226,15 @@ class ViewpointPool:
             cat: {"object_ids": e["object_ids"], "viewpoints": e["viewpoints"].tolist()}
             for cat, e in state["entries"].items()
         }
-        Path(path).write_text(json.dumps(state, indent=1))
+        from lightning_vtr.utils.io import atomic_write_json
+
+        atomic_write_json(path, state)
 
     @classmethod
     def from_json(cls, path: str | Path) -> ViewpointPool:
         """Read a pool written by :meth:`to_json`."""
         try:
-            state = json.loads(Path(path).read_text())
+            state = read_json(path)
         except json.JSONDecodeError as err:
             raise ValueError(f"{path} is not a ViewpointPool JSON file: {err}") from None
         pool = cls(capacity=state.get("capacity"), num_views=state["num_views"], fallback=state.get("fallback", "area"))

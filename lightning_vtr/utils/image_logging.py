@@ -69,7 +69,7 @@ def png_path(directory: str | Path, tag: str, step: int) -> Path:
     The tag's ``/`` separate folders (as TensorBoard groups them); characters other than letters, digits,
     ``.``, ``_``, ``-`` become ``_``, and empty or ``..`` parts are dropped, so a tag never leaves ``images/``.
     """
-    return join_under(Path(directory, "images"), *_tag_parts(tag), f"step_{int(step):06d}.png")
+    return join_under(Path(directory, "images"), *_tag_parts(tag), f"step_{int(step):06d}.png", replace_link=True)
 
 
 def _tag_parts(tag: str) -> list[str]:

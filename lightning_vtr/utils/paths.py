@@ -9,8 +9,12 @@ on a whole listing) where they read a name; writers build every path under a use
 A plain component is a non-empty string that is not ``.`` or ``..``, holds no ``/`` or ``\\``, is not an
 absolute or drive path (``C:``), holds no NUL or other control character (Unicode category ``Cc``) and does
 not start with ``-`` (it would read as an option to a shell tool). Two names of one listing that differ only
-in case (``Chair`` and ``chair``) are refused too: on a case-insensitive file system (macOS, Windows) they
-would be one folder, so one object would overwrite the other.
+in case (``Chair`` and ``chair``) or in Unicode normalization (``é`` as one code point, NFC, or as ``e`` and a
+combining accent, NFD) are refused too: on a case-insensitive or normalizing file system (macOS, Windows)
+they would be one folder, so one object would overwrite the other.
+
+A name printed to a terminal goes through :func:`printable`, which escapes control and other invisible
+characters, so a name holding an ANSI escape sequence cannot rewrite what the terminal shows.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ __all__ = [
     "check_relative_path",
     "join_under",
     "name_rule",
+    "printable",
 ]
 
 #: The rules a plain path component must follow: rule id -> what the rule says (the text of the messages).
@@ -42,8 +47,8 @@ RULES: dict[str, str] = {
     "control": "must not contain NUL or control characters",
     "dash": "must not start with '-', which reads as an option",
     "key": "must be '<category>/<object_id>' with exactly one '/'",
-    "case": "must not differ only in case from another name of the same listing, as both would be one folder "
-    "on a case-insensitive file system",
+    "case": "must not differ only in case (or Unicode normalization) from another name of the same listing, as "
+    "both would be one folder on a case-insensitive file system",
 }
 
 
@@ -217,8 +222,10 @@ def check_relative_path(path: str, *, source: str | os.PathLike, entry: str) -> 
 def check_no_case_collisions(names: Iterable[str], *, source: str | os.PathLike, entry: str) -> None:
     """Refuse two names of one listing that differ only in case (one folder on a case-insensitive file system).
 
-    Object keys ``'<category>/<object_id>'`` are compared part by part: two categories that differ only in
-    case collide, and so do two object ids of one category.
+    Names are compared after ``unicodedata.normalize("NFC", name).casefold()``, so two spellings of one name
+    in different Unicode normal forms (NFC ``"\u00e9"`` and NFD ``"e\u0301"``) collide as well. Object keys
+    ``'<category>/<object_id>'`` are compared part by part: two categories that differ only in case collide,
+    and so do two object ids of one category.
 
     Raises:
         UnsafeNameError: the second name of the first colliding pair, with the first named in the message.
@@ -227,21 +234,37 @@ def check_no_case_collisions(names: Iterable[str], *, source: str | os.PathLike,
         >>> check_no_case_collisions(["chair/a", "Chair/b"], source="metadata.json", entry="object key")
         Traceback (most recent call last):
         ...
-        lightning_vtr.utils.paths.UnsafeNameError: metadata.json: object key 'Chair/b': must not differ only in case from another name of the same listing, as both would be one folder on a case-insensitive file system (its category 'Chair' against 'chair/a')
+        lightning_vtr.utils.paths.UnsafeNameError: metadata.json: object key 'Chair/b': must not differ only in case (or Unicode normalization) from another name of the same listing, as both would be one folder on a case-insensitive file system (its category 'Chair' against 'chair/a')
     """
     seen: dict[str, tuple[str, str]] = {}  # casefolded prefix -> (prefix as written, full name)
     for name in names:
         parts = name.split("/")
         for depth in range(1, len(parts) + 1):
             prefix = "/".join(parts[:depth])
-            folded = prefix.casefold()
+            folded = unicodedata.normalize("NFC", prefix).casefold()
             first = seen.setdefault(folded, (prefix, name))
             if first[0] != prefix:
                 what = f"its category {prefix!r}" if depth < len(parts) else "it"
                 raise UnsafeNameError(source, entry, name, "case", f"{what} against {first[1]!r}")
 
 
-def join_under(root: str | os.PathLike, *parts: str) -> Path:
+def printable(text: str) -> str:
+    """``text`` with every character a terminal would not show as itself escaped as ``repr`` escapes it.
+
+    Control characters (ESC of an ANSI escape sequence, a carriage return, a newline), format characters
+    (a right-to-left override) and other non-printable characters become ``\\x1b``, ``\\r``, ``\\u202e``, ...;
+    letters of any script and spaces are kept.
+
+    Example:
+        >>> printable("chair\\x1b[2Jx"), printable("Stühle")
+        ('chair\\\\x1b[2Jx', 'Stühle')
+    """
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def join_under(root: str | os.PathLike, *parts: str, replace_link: bool = False) -> Path:
     """``root`` joined with ``parts``; refused if the result does not resolve to a path inside ``root``.
 
     Both sides are resolved (symlinks followed, ``..`` collapsed) before the comparison, so a part with
@@ -251,6 +274,10 @@ def join_under(root: str | os.PathLike, *parts: str) -> Path:
     Args:
         root: the folder every written path must stay in (an output folder, a dataset root).
         parts: the names to append; each may hold ``/`` (e.g. a checked ``'<category>/<object_id>'`` key).
+        replace_link: the last part names a file the caller writes whole through :mod:`lightning_vtr.utils.io`
+            (``os.replace``), which replaces a symlink standing there instead of following it: that symlink
+            is not followed here either, so an earlier output whose files are links is written again with
+            regular files. Its folders are still resolved and checked.
 
     Returns:
         ``Path(root, *parts)``.
@@ -269,7 +296,10 @@ def join_under(root: str | os.PathLike, *parts: str) -> Path:
     base = Path(root)
     path = base.joinpath(*parts)
     resolved_root = base.resolve()
-    resolved = path.resolve()
+    if replace_link and path.name not in ("", ".", ".."):
+        resolved = path.parent.resolve() / path.name
+    else:
+        resolved = path.resolve()
     if resolved != resolved_root and resolved_root not in resolved.parents:
         raise UnsafePathError(base, path)
     return path

@@ -68,6 +68,8 @@ _UNSAFE_KEYS = {
     "empty": ("object id empty", _KEY % "chair/" + _RULE["empty"] + " (its object id '')"),
     "case": ("categories `chair` and `Chair`", _KEY % "Chair/b" + _RULE["case"] + " (its category 'Chair' against "
              "'chair/a')"),
+    "nfd": ("object ids `café` written NFC and NFD", _KEY % "chair/cafe\u0301" + _RULE["case"] + " (it against "
+            "'chair/caf\u00e9')"),
     "view_set": ("view set `../aligned`", "view set '../aligned': " + _RULE["separator"] + " (found '/' at index 2)"),
 }  # fmt: skip
 _UNSAFE_OBJECTS = {
@@ -79,6 +81,7 @@ _UNSAFE_OBJECTS = {
     "dash": ["chair/-rf"],
     "empty": ["chair/"],
     "case": ["chair/a", "Chair/b"],
+    "nfd": ["chair/caf\u00e9", "chair/cafe\u0301"],
     "view_set": ["chair/a"],
 }
 
@@ -548,6 +551,66 @@ def _user_files(tmp: Path, mp: pytest.MonkeyPatch) -> None:
 
 
 SETUPS["user_files"] = _user_files
+
+
+# ----------------------------------------------------------------- untrusted input that would expand or hide
+def _entry_meta(tmp: Path, entry: Any) -> None:
+    """A metadata.json whose object ``chair/a`` has the entry ``entry``."""
+    import json
+
+    meta = {"format": "lightning_vtr.shapenet_vtr", "version": 1, "objects": {"chair/a": entry},
+            "view_sets": ["aligned"], "resolution": 32, "image_size": 64}  # fmt: skip
+    _meta(tmp, json.dumps(meta))
+
+
+def _bomb_picture(tmp: Path) -> None:
+    """``views/a.png``: a 100-byte PNG whose header claims 30000 x 30000 pixels."""
+    import struct
+    import zlib
+
+    from PIL import Image
+
+    _views(tmp)
+    Image.new("L", (4, 4)).save(tmp / "views" / "a.png")
+    data = bytearray((tmp / "views" / "a.png").read_bytes())
+    start = data.index(b"IHDR")
+    data[start + 4 : start + 12] = struct.pack(">II", 30000, 30000)
+    data[start + 17 : start + 21] = struct.pack(">I", zlib.crc32(bytes(data[start : start + 17])))
+    (tmp / "views" / "a.png").write_bytes(bytes(data))
+
+
+def _large_meta(tmp: Path, mp: pytest.MonkeyPatch) -> None:
+    """A valid metadata.json of 200 bytes, over a JSON limit of 100 bytes."""
+    _entry_meta(tmp, {"split": "test", "views": {"aligned": [[0.0, 30.0]]}})
+    path = tmp / "data" / "metadata.json"
+    path.write_text(path.read_text().ljust(200))
+    mp.setenv("LIGHTNING_VTR_MAX_JSON_BYTES", "100")
+
+
+SETUPS["evil_split"] = lambda tmp, mp: _entry_meta(tmp, {"split": "evil", "views": {}})
+SETUPS["number_entry"] = lambda tmp, mp: _entry_meta(tmp, 5)
+SETUPS["bomb_picture"] = lambda tmp, mp: _bomb_picture(tmp)
+SETUPS["large_meta"] = _large_meta
+_MANY_VIEWS = "mine:\n  title: Mine\n  description: d\n  selector: random\n  selector_kwargs: {num_views: 1000000}\n"
+SETUPS["many_views"] = lambda tmp, mp: (tmp / "many_views.yaml").write_text(_MANY_VIEWS)
+ROWS += [
+    Row("dataset-info", "`metadata.json` object with `split: \"evil\"`", ["dataset-info", "{tmp}/data"],
+        "{tmp}/data/metadata.json: object 'chair/a' has split 'evil', expected one of ('train', 'val', 'test')", 1,
+        "evil_split"),
+    Row("predict", "`--data` object entry a number", _UNSAFE_DATA, "{tmp}/data/metadata.json: object 'chair/a' must "
+        "map to a JSON object of fields, found int", 1, "number_entry", absent=["out"]),
+    Row("dataset-info", "`metadata.json` over the JSON size limit (`LIGHTNING_VTR_MAX_JSON_BYTES=100`)",
+        ["dataset-info", "{tmp}/data"], "{tmp}/data/metadata.json: a JSON file of at most 100 bytes was expected, "
+        "found 200 bytes (set $LIGHTNING_VTR_MAX_JSON_BYTES to read larger files)", 1, "large_meta"),
+    Row("predict", "`--images` holds a 100-byte PNG whose header claims 30000x30000 pixels", _PREDICT,
+        "`--images`: {tmp}/views/a.png: a picture of at most 8192x8192 pixels was expected, found 900000000 pixels "
+        "(more than PIL's decompression-bomb limit of 178956970 pixels); not decoded", 1, "bomb_picture",
+        absent=["out"]),
+    Row("report", "`--strategies-file` row with `num_views: 1000000`", ["report", "--strategies-file",
+        "{tmp}/many_views.yaml", "--out", "{tmp}/out"], "{tmp}/many_views.yaml, row 'mine', selector_kwargs: "
+        "`num_views` must be an integer in [1, 64], got 1000000", 1, "many_views", absent=["out"],
+        note="before any training"),
+]  # fmt: skip
 _PROTOCOL = "does not satisfy lightning_vtr.ReconstructionModel: missing %s (see lightning_vtr.protocol)"
 _ROW = "{tmp}/%s.yaml, row 'mine'"
 ROWS += [

@@ -1,5 +1,6 @@
 """A model and a selector of a user's own, not the package's classes, through every command: ``fit``, ``predict``,
-``robustness`` and a 1-seed 1-epoch ``report`` with a strategies file, run from the folder holding them."""
+``robustness`` (both with ``--model``: a checkpoint never chooses the code that runs) and a 1-seed 1-epoch
+``report`` with a strategies file, run from the folder holding them."""
 
 from __future__ import annotations
 
@@ -135,7 +136,7 @@ def fitted(user_folder, tiny_dataset):
             ]
         )
     assert status == 0
-    (ckpt,) = (user_folder / "run").rglob("*.ckpt")
+    (ckpt,) = (user_folder / "run").rglob("last.ckpt")
     return ckpt
 
 
@@ -147,12 +148,19 @@ def test_fit_trains_a_plain_lightning_module_and_records_its_class(fitted):
     assert not torch.equal(checkpoint["state_dict"]["grid"], torch.zeros_like(checkpoint["state_dict"]["grid"]))
 
 
-def test_predict_loads_the_custom_checkpoint_without_model(fitted, user_folder, tiny_dataset, monkeypatch):
+def test_predict_loads_the_custom_checkpoint_with_model(fitted, user_folder, tiny_dataset, monkeypatch, capsys):
     monkeypatch.chdir(user_folder)
     out = user_folder / "predictions"
     argv = ["predict", "--ckpt", str(fitted), "--data", str(tiny_dataset), "--limit", "1", "--out", str(out)]
-    assert main([*argv, "--no-sheets", "--device", "cpu", "--view-sets", "aligned"]) == 0
-    model = load_model(fitted)
+    argv += ["--no-sheets", "--device", "cpu", "--view-sets", "aligned"]
+    # the checkpoint records mymodel.TinyVoxelNet, but a checkpoint never chooses the code that runs
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "names the model class 'mymodel.TinyVoxelNet', outside lightning_vtr" in err
+    assert "pass `--model mymodel.TinyVoxelNet` if you trust it" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert main([*argv, "--model", "mymodel.TinyVoxelNet"]) == 0
+    model = load_model(fitted, "mymodel.TinyVoxelNet")
     assert type(model).__qualname__ == "TinyVoxelNet"
     weights = torch.load(fitted, map_location="cpu", weights_only=True)["state_dict"]["grid"]
     assert torch.equal(model.grid.detach(), weights)
@@ -164,6 +172,7 @@ def test_robustness_maps_the_custom_checkpoint(fitted, user_folder, tiny_dataset
     monkeypatch.chdir(user_folder)
     out = user_folder / "robustness"
     argv = ["robustness", "--ckpt", f"mine={fitted}", "--data", str(tiny_dataset), "--out", str(out), "--k", "90"]
+    argv += ["--model", "mymodel.TinyVoxelNet"]
     assert main([*argv, "--objects", "2", "--no-progress", "--device", "cpu"]) == 0
     with open(out / "bins.csv") as f:
         rows = [row for row in csv.DictReader(f) if row["category"] == "all"]

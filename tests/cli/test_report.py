@@ -156,8 +156,9 @@ def test_every_flag_is_a_config_field_with_one_name_and_the_configs_default():
     add_arguments(parser)
     actions = {a.dest: a for a in parser._actions if a.dest != "help"}
     experiment, report = default_experiment(), ReportConfig()
-    # every flag but the two switches sets the field of its name, under that one name
-    switches = {"no_ablations", "list_strategies"}
+    # every flag but these sets the field of its name, under that one name (--model-arg KEY=VALUE fills the
+    # experiment's model_kwargs, --no-progress its trainer_kwargs)
+    switches = {"no_ablations", "list_strategies", "no_progress", "model_args"}
     config_fields = {f.name for f in fields(ExperimentConfig)} | {f.name for f in fields(ReportConfig)}
     assert set(actions) - switches <= config_fields
     for dest, action in actions.items():

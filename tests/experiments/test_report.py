@@ -135,7 +135,7 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     assert markdown == result["markdown"]
     assert "Command: `lightning-vtr report" in markdown and "Total wall time:" in markdown
     tables = _parse_tables(markdown)
-    header, rows = tables["Table 1: robustness to view transformations (%, test set; one seed)"]
+    header, rows = tables["Table 1: robustness to view transformations (%, test set; 1 seed: no interval)"]
     assert header == ["Method"] + [
         f"{s} {m}" for s in ("Aligned", "Hemispherical", "Spherical") for m in ("mIoU", "best mIoU", "F-score")
     ]
@@ -169,7 +169,8 @@ def test_report_tables_equal_the_runs_results_and_a_rerun_skips_every_run(tiny_d
     # One seed: the paired difference to None-VTR without an interval; no Random row, so no table against it.
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
     diffs = [runs["error_guided"]["results"][s]["iou@0.4"] - runs["none"]["results"][s]["iou@0.4"] for s in VIEW_SETS]
-    assert rows == {"Error-guided (default rule)": [f"{100 * d:+.2f}, {int(d != 0)}/1" for d in diffs]}
+    # one seed: the difference alone, no interval and no sign count (the note says "1 seed: no interval")
+    assert rows == {"Error-guided (default rule)": [f"{100 * d:+.2f}" for d in diffs]}
     assert "Paired difference to Random (paper: angle-uniform) (mIoU points)" not in tables
     # The views the callback generated: a start selection and one after epoch 0, 3 objects each.
     _, rows = tables["Where the training views went"]
@@ -424,7 +425,7 @@ def test_every_table_row_and_csv_row_comes_from_its_own_run(tmp_path, monkeypatc
     # Per-seed differences are constant here (the seed term cancels): no spread, every seed agrees.
     _, rows = tables["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
     gap = (names.index("paper") - names.index("random")) * 7 / 2
-    assert rows["Error-guided (paper's rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}], 2/2"] * 3
+    assert rows["Error-guided (paper's rule)"] == [f"+{gap:.2f} [+{gap:.2f}, +{gap:.2f}] above, 2/2"] * 3
 
     with (tmp_path / "r" / "results.csv").open() as f:
         rows_csv = list(csv.DictReader(f))
@@ -504,16 +505,17 @@ def test_paired_differences_against_none_and_random_with_intervals_and_sign_agre
         mean = sum(diffs) / 3
         half = t * (sum((d - mean) ** 2 for d in diffs) / 2) ** 0.5 / 3**0.5
         agree = sum(d * mean > 0 for d in diffs)
-        return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}], {agree}/3"
+        word = "above" if mean - half > 0 else "below" if mean + half < 0 else "level"
+        return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}] {word}, {agree}/3"
 
     header, rows = tables["Paired difference to None-VTR (mIoU points)"]
     assert header == ["Method", "Aligned", "Hemispherical", "Spherical"]
     assert rows == {
-        "Random (paper: angle-uniform)": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48], 3/3
-        "Error-guided (default rule)": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97], 2/3
-        "Error-guided (paper's rule)": ["+0.00 [+0.00, +0.00], 0/3"] * 3,
+        "Random (paper: angle-uniform)": [expected([1, 2, 3])] * 3,  # +2.00 [-0.48, +4.48] level, 3/3
+        "Error-guided (default rule)": [expected([3, -1, 1])] * 3,  # +1.00 [-3.97, +5.97] level, 2/3
+        "Error-guided (paper's rule)": ["+0.00 [+0.00, +0.00] level, 0/3"] * 3,
     }
-    assert rows["Random (paper: angle-uniform)"][0] == "+2.00 [-0.48, +4.48], 3/3"
+    assert rows["Random (paper: angle-uniform)"][0] == "+2.00 [-0.48, +4.48] level, 3/3"
     _, rows = tables["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
     assert rows == {
         "None-VTR": [expected([-1, -2, -3])] * 3,
@@ -611,7 +613,7 @@ def test_strategies_resolving_to_the_same_arguments_are_fitted_once_and_shown_in
     assert calls == ["none", "random", "paper"] * 2  # no "paper_again" fit
     assert result["runs"]["paper_again"] == result["runs"]["paper"]
     _, rows = _parse_tables(result["markdown"])["Paired difference to Random (paper: angle-uniform) (mIoU points)"]
-    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+1.00 [+1.00, +1.00], 2/2"] * 3
+    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+1.00 [+1.00, +1.00] above, 2/2"] * 3
     assert (
         "fitted once because their selector and callback arguments are identical: "
         "Paper's rule again = Error-guided (paper's rule)"
@@ -712,13 +714,13 @@ def test_validation_tables_pair_the_validation_results_and_merged_runs_are_valid
     assert sorted(validated) == sorted((r, s, 12) for r in ("none", "random", "paper") for s in seeds)
     tables = _parse_tables(result["markdown"])
     _, rows = tables["Validation split: paired difference to None-VTR (mIoU points)"]
-    assert rows["Random (paper: angle-uniform)"] == ["+2.00 [-0.48, +4.48], 3/3"] * 3
-    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+0.00 [-2.48, +2.48], 0/3"] * 3
+    assert rows["Random (paper: angle-uniform)"] == ["+2.00 [-0.48, +4.48] level, 3/3"] * 3
+    assert rows["Paper's rule again"] == rows["Error-guided (paper's rule)"] == ["+0.00 [-2.48, +2.48] level, 0/3"] * 3
     _, rows = tables["Validation split: paired difference to Random (paper: angle-uniform) (mIoU points)"]
-    assert rows["Error-guided (paper's rule)"] == ["-2.00 [-2.00, -2.00], 3/3"] * 3
+    assert rows["Error-guided (paper's rule)"] == ["-2.00 [-2.00, -2.00] below, 3/3"] * 3
     # the test-split tables keep the test results (Ours +5 points over none on every seed there)
     _, rows = tables["Paired difference to None-VTR (mIoU points)"]
-    assert rows["Error-guided (paper's rule)"] == ["+5.00 [+5.00, +5.00], 3/3"] * 3
+    assert rows["Error-guided (paper's rule)"] == ["+5.00 [+5.00, +5.00] above, 3/3"] * 3
     assert "--validation-repeats 12" in result["markdown"]
     assert result["validation_differences"]["random"]["Error-guided (paper's rule)"]["spherical"].mean == pytest.approx(
         -0.02
