@@ -19,7 +19,7 @@ Bins count equally (a random pick is a uniformly random bin, not an area-uniform
 writes ``OUT/score_validity.md``::
 
     python -m research.score_validity --ckpt "None-VTR=runs/none/last.ckpt" --ckpt "VTR=runs/vtr/last.ckpt" \\
-        --data ~/.cache/lightning_vtr/embedded --split test --k 30 --objects 64 --out runs/score_validity
+        --data embedded --split test --k 30 --objects 64 --out runs/score_validity
 """
 
 from __future__ import annotations
@@ -555,6 +555,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``--data``, ``--split``, ``--k``, ``--seed``, ``--objects``, ``--batch-size``, ``--device``); every checkpoint
     is measured on the same objects. Returns the exit status 0.
     """
+    from lightning_vtr.cli.arguments import dataset_folder
     from lightning_vtr.cli.pix3d import checkpoint_argument
     from lightning_vtr.evaluation import make_datamodule, robustness_map
     from lightning_vtr.evaluation.predict import resolve_device
@@ -564,7 +565,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m research.score_validity", description=main.__doc__)
     add = parser.add_argument
     add("--ckpt", type=checkpoint_argument, action="append", required=True, metavar="[NAME=]CKPT")
-    add("--data", type=Path, required=True, metavar="DATASET", help="a ShapeNet-VTR directory with meshes")
+    add("--data", required=True, metavar="DATASET", help="a ShapeNet-VTR directory with meshes, or `embedded`")
     add("--split", default="test", choices=("train", "val", "test"))
     add("--out", type=Path, required=True, help="output directory (score_validity.md)")
     add("--k", type=int, default=30, help="bin interval in degrees, dividing 180 (default 30)")
@@ -579,7 +580,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     tables: dict[str, str] = {}
     for name, path in args.ckpt:
         model = load_model(path).to(device)
-        dm = make_datamodule(path, model, Path(args.data).expanduser())
+        dm = make_datamodule(path, model, dataset_folder(args.data))
         if records is None:
             records = spread_over_categories(dm.split_records(args.split), args.objects)
         objects = ObjectSubset(dm, records)

@@ -203,7 +203,7 @@ def test_csv_cells_a_spreadsheet_would_run_are_written_as_text_and_read_back(tmp
     from lightning_vtr.evaluation.robustness import RobustnessMap, read_bins_csv
     from lightning_vtr.utils.io import csv_cell, uncsv_cell
 
-    ids = ["=HYPERLINK(\"http://x\",\"y\")", "+1+cmd", "@SUM(A1)", "\tx", "'=already", "plain"]
+    ids = ['=HYPERLINK("http://x","y")', "+1+cmd", "@SUM(A1)", "\tx", "'=already", "plain"]
     rmap = RobustnessMap.from_iou(np.full((6, 18), -0.5), k=60, object_ids=ids, categories=["=c"] * 6)
     rmap.to_csv(tmp_path, per_category=True)
     with open(tmp_path / "objects.csv", newline="") as f:

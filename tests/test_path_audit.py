@@ -76,6 +76,8 @@ ALLOWED: dict[str, str] = {
     "lightning_vtr.synthesis.zero123_checkpoint:find_local_weights": "reads (is_file) a model folder's shard "
     "files; writes nothing",
     "lightning_vtr.synthesis.zero123_checkpoint:load_projection": "reads a model folder's weight files; writes nothing",
+    "lightning_vtr.utils.paths:join_under": "the check itself: the resolved parent joined with the path's own last "
+    "component (replace_link), only compared with the root",
 }
 
 #: Functions that write under a folder the user gave, with names from data: each must call join_under.

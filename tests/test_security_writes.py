@@ -161,3 +161,19 @@ def test_an_appended_log_refuses_a_symlink(tmp_path):
     with open_append(tmp_path / "fresh.log") as log:
         log.write("two\n")
     assert (tmp_path / "fresh.log").read_text() == "one\ntwo\n"
+
+
+def test_join_under_lets_a_writer_replace_a_linked_file_but_not_enter_a_linked_folder(tmp_path):
+    from lightning_vtr.utils.paths import UnsafePathError, join_under
+
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (out / "a.png").symlink_to(elsewhere / "a.png")
+    (out / "maps").symlink_to(elsewhere, target_is_directory=True)
+    with pytest.raises(UnsafePathError):
+        join_under(out, "a.png")  # a reader would follow the link out
+    assert join_under(out, "a.png", replace_link=True) == out / "a.png"  # a writer replaces it
+    for parts in (("maps", "x.png"), ("..", "x.png"), ("sub", "..", "..")):
+        with pytest.raises(UnsafePathError):
+            join_under(out, *parts, replace_link=True)

@@ -233,7 +233,7 @@ def select_objects(
         parts = sharded_map(
             trainer, indices, lambda mine: list(zip(*predict_objects(pl_module, dm, mine, epoch, settings)))
         )
-        payload = None
+        payload: tuple[list[Selection] | None, Any] | None = None
         if trainer.is_global_zero:
             recs = [records[i] for i in indices]
             predicted = torch.stack([p for p, _ in parts]) if parts else torch.empty(0)

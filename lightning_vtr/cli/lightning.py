@@ -166,7 +166,7 @@ class VTRLightningCLI(LightningCLI):
         subcommand = self.config.get("subcommand") if hasattr(self.config, "get") else None
         settings = self.config.get(subcommand) if subcommand else None
         ckpt_path = settings.get("ckpt_path") if settings is not None else None
-        if not ckpt_path or not Path(ckpt_path).is_file():
+        if settings is None or not ckpt_path or not Path(ckpt_path).is_file():
             return super()._parse_ckpt_path()
         trusted = settings.get("weights_only") is False
         try:

@@ -5,7 +5,7 @@ Every checkpoint is measured with :func:`~lightning_vtr.evaluation.robustness.ro
 so the same view sets (views per set: the first checkpoint's ``num_views``, for all of them)::
 
     lightning-vtr robustness --ckpt "None-VTR=runs/none/last.ckpt" --ckpt "VTR=runs/vtr/last.ckpt" \\
-        --data ~/.cache/lightning_vtr/embedded --split test --out robustness --k 30 --objects 64
+        --data embedded --split test --out robustness --k 30 --objects 64
 
 It writes into ``OUT``:
 

@@ -24,7 +24,7 @@ def write_results_csv(
 ) -> None:
     """One row per run x seed x view set: ``run, strategy, seed, view_set``, the metrics (fractions, unrounded) and
     the run's ``train_seconds``."""
-    rows = []
+    rows: list[list[Any]] = []
     for run in runs:
         for seed in seeds:
             payload = payloads[run.name][seed]
@@ -53,7 +53,7 @@ def write_differences_csv(
     ``agree``, empty over one seed). ``baselines``: the runs compared with (default: those of :data:`BASELINES` among ``rows``)."""
     if baselines is None:
         baselines = [b for b in BASELINES if b in rows.values()]
-    table = []
+    table: list[list[Any]] = []
     for baseline in baselines:
         for metric in METRICS:
             by_title = paired_differences(rows, baseline, payloads, metric, seeds)

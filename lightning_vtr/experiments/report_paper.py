@@ -504,8 +504,7 @@ def write_paper_files(
     caption = f"{heading}\nbold: the row whose paired difference to every other row has a 95 % CI above zero"
     if len(seeds) < 2:
         caption += f" (none: {NO_INTERVAL})"
-    latex = table1_latex(table1, caption=f"{caption}\n{command}", bold=bold)
-    atomic_write(paths["table1_latex"], latex)
+    atomic_write(paths["table1_latex"], table1_latex(table1, caption=f"{caption}\n{command}", bold=bold))
 
     baselines = list(summary.differences)
     differences = {b: {m: paired_differences(rows, b, payloads, m, seeds) for m in METRICS} for b in baselines}

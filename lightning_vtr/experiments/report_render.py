@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import shlex
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from lightning_vtr.experiments.report_config import BASELINES, MAIN_K, METRICS, ReportConfig
 from lightning_vtr.experiments.report_plan import ReportRun
@@ -281,9 +281,9 @@ def equivalent_command(config: ReportConfig) -> str:
     if exp.trainer_kwargs.get("enable_progress_bar") is False:
         words.append("--no-progress")
     for f in flag_fields(type(config)):
-        value, default = getattr(config, f.name), f.default
+        value, default = getattr(config, f.name), cast(Any, f.default)
         if isinstance(value, (list, tuple)):
-            value, default = list(value), list(default)  # type: ignore[call-overload]
+            value, default = list(value), list(default)
         if value is not None and (f.name == "jobs" or f.name in _ALWAYS or value != default):
             words += _flag_words(f.name, value, f.metadata["flag"])
     return shlex.join(words)

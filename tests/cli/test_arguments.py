@@ -35,3 +35,36 @@ def test_ratios_and_positive_int():
     for text in ("0", "-2", "1.5", "x"):
         with pytest.raises(argparse.ArgumentTypeError, match="positive integer"):
             positive_int(text)
+
+
+def test_dataset_folder_names_the_embedded_dataset_by_a_word(tiny_dataset, monkeypatch):
+    from lightning_vtr.cli.arguments import dataset_folder
+    from lightning_vtr.data import builder
+
+    built = []
+    monkeypatch.setattr(
+        builder, "ensure_embedded_dataset", lambda progress=True: built.append(progress) or tiny_dataset
+    )
+    assert dataset_folder("embedded", progress=False) == tiny_dataset
+    assert built == [False]
+    assert dataset_folder(str(tiny_dataset)) == tiny_dataset  # a folder is itself
+    assert built == [False]
+
+
+def test_a_folder_of_datasets_is_refused_naming_the_datasets_inside(tiny_dataset, tmp_path):
+    from lightning_vtr.cli.arguments import dataset_folder
+    from lightning_vtr.data.format import DatasetNotFoundError
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "embedded-0123456789").symlink_to(tiny_dataset, target_is_directory=True)
+    (cache / "notes").mkdir()
+    with pytest.raises(DatasetNotFoundError) as error:
+        dataset_folder(cache)
+    message = str(error.value)
+    assert "is a folder of datasets, not a dataset: it holds embedded-0123456789;" in message
+    assert "notes" not in message and "`embedded`" in message
+    with pytest.raises(
+        FileNotFoundError, match=r"`--data` must be a ShapeNet-VTR directory or `embedded`, got .* \(no such folder\)"
+    ):
+        dataset_folder(tmp_path / "missing")

@@ -531,3 +531,15 @@ def test_official_checkpoint_errors_name_the_file_and_keys(tmp_path):
         )
     with pytest.raises(FileNotFoundError, match="nope.pth"):
         Pix2VoxPlusPlus.from_official_checkpoint(tmp_path / "nope.pth")
+
+
+def test_a_checkpoint_recording_no_stride_choice_loads_with_the_presets(tmp_path):
+    """LightningCLI records the argument's default, ``merger_stride: None``: the preset's stride, as built."""
+    model = Pix2VoxPlusPlus(preset="tiny")
+    hparams = {**model.hparams, "merger_stride": None}
+    path = tmp_path / "cli.ckpt"
+    torch.save(
+        {"state_dict": model.state_dict(), "hyper_parameters": hparams, "pytorch-lightning_version": "2.6.0"}, path
+    )
+    restored = Pix2VoxPlusPlus.load_from_checkpoint(path)
+    assert restored.merger.stride == restored.spec.merger_stride == model.merger.stride == 4
