@@ -32,6 +32,8 @@ def dataset_folder(data: str | Path, option: str = "--data", *, progress: bool =
 
         return ensure_embedded_dataset(progress=progress)
     path = Path(data).expanduser()
+    if not read and not path.is_dir():
+        return path  # the caller reports what is there
     if not path.is_dir():
         found = "a file" if path.exists() else "no such folder"
         raise FileNotFoundError(

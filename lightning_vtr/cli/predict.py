@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
         exported,
         total=getattr(results, "__len__", lambda: None)(),
         desc="predict: exporting",
-        disable=args.no_progress,
+        disable=True if args.no_progress else None,  # None: a bar on a terminal only
         leave=False,
     ):
         entries.append(entry)

@@ -171,17 +171,15 @@ def check_inputs(args: argparse.Namespace) -> None:
     """
     from pathlib import Path
 
-    from lightning_vtr.cli.arguments import check_output_folder
-    from lightning_vtr.data.format import load_metadata
+    from lightning_vtr.cli.arguments import EMBEDDED, check_output_folder, dataset_folder
     from lightning_vtr.errors import UsageError
 
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"`--fraction` must be in (0, 1], got {args.fraction!r}")
+    if args.data is not None and str(args.data) == EMBEDDED:
+        args.data = None  # the default: the embedded dataset, built on first use by the report itself
     if args.data is not None:
-        data = Path(args.data).expanduser()
-        if data.exists() and not data.is_dir():
-            raise FileNotFoundError(f"`--data` must be a ShapeNet-VTR directory, got {str(args.data)!r} (a file)")
-        load_metadata(data)
+        dataset_folder(args.data)
     if args.strategies_file is not None:
         from lightning_vtr.experiments.strategies import report_variants
 

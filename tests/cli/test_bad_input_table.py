@@ -153,7 +153,7 @@ ROWS: list[Row] = [
     Row("predict", "`--images` holds an empty `a.png`", _PREDICT,
         _NOT_A_PICTURE + "an empty file", 1, "empty_picture", absent=["out"]),
     Row("predict", "`--data` missing", ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"],
-        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"]),
+        "`--data` must be a ShapeNet-VTR directory or `embedded`, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"]),
     Row("predict", "`--data` a folder of other files", ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/other", "--out", "{tmp}/out"],
         _NO_METADATA % ("other", "other"), 2, "other", absent=["out"]),
     Row("predict", "`--threshold 1.5`", [*_PREDICT, "--threshold", "1.5"],
@@ -174,9 +174,10 @@ ROWS: list[Row] = [
         absent=["out/predictions.json", "out/index.html"], note="no predictions.json / index.html: not complete"),
     # ------------------------------------------------------------------ report
     Row("report", "`--data` missing", ["report", "--data", "{tmp}/nowhere", "--out", "{tmp}/out"],
-        _NO_METADATA % ("nowhere", "nowhere"), 2, absent=["out"], note="before Lightning prints anything"),
+        "`--data` must be a ShapeNet-VTR directory or `embedded`, got '{tmp}/nowhere' (no such folder)", 2,
+        absent=["out"], note="before Lightning prints anything"),
     Row("report", "`--data` a file", ["report", "--data", "{tmp}/notes.txt", "--out", "{tmp}/out"],
-        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/notes.txt' (a file)", 2, absent=["out"]),
+        "`--data` must be a ShapeNet-VTR directory or `embedded`, got '{tmp}/notes.txt' (a file)", 2, absent=["out"]),
     Row("report", "`--data` with a truncated `metadata.json`", ["report", "--data", "{tmp}/data", "--out", "{tmp}/out"],
         "{tmp}/data/metadata.json is not valid JSON: Unterminated string starting at: line 1 column 12 (char 11)",
         1, "truncated_meta", absent=["out"]),
@@ -218,7 +219,7 @@ ROWS: list[Row] = [
         "`--ckpt` NAME 'A' is repeated: every checkpoint needs its own NAME (give one as NAME=CKPT)", 2,
         absent=["out"]),
     Row("robustness", "`--data` missing", _ROBUST,
-        "`--data` must be a ShapeNet-VTR directory, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"],
+        "`--data` must be a ShapeNet-VTR directory or `embedded`, got '{tmp}/nowhere' (no such folder)", 2, absent=["out"],
         note="checked before a model loads"),
     Row("robustness", "`--data` a folder of other files", [*_ROBUST[:4], "{tmp}/other", *_ROBUST[5:]],
         _NO_METADATA % ("other", "other"), 2, "other", absent=["out"]),
@@ -374,14 +375,15 @@ def _refuse(monkeypatch: pytest.MonkeyPatch, module: Any, name: str, err: int, m
 
 
 def _refuse_probe(tmp: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import lightning_vtr.cli.arguments as arguments
+    """The probe file (``tempfile.mkstemp`` in ``--out``, a random name) is refused, as in a read-only folder."""
+    import lightning_vtr.utils.io as io
 
     _views(tmp)
 
-    def refuse(path: Any, *args: Any, **kwargs: Any) -> Any:
-        raise PermissionError(errno.EACCES, "Permission denied", str(path).rsplit("-", 1)[0])
+    def refuse(*args: Any, dir: Any = None, prefix: str = "", **kwargs: Any) -> Any:
+        raise PermissionError(errno.EACCES, "Permission denied", str(Path(dir, f"{prefix}x7Qz")))
 
-    monkeypatch.setattr(arguments, "open", refuse, raising=False)
+    monkeypatch.setattr(io.tempfile, "mkstemp", refuse)
 
 
 def _full_export(tmp: Path, monkeypatch: pytest.MonkeyPatch) -> None:
