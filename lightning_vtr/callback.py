@@ -404,6 +404,12 @@ class ErrorGuidedViewAugmentation(L.Callback):
             source_view_set=self.source_view_set,
             batch_size=self.batch_size,
         )
+        # 5. a synthesizer serving the nearest prerendered view says how far it snapped (this process's views)
+        pop_snap_angles = getattr(self.synthesizer, "pop_snap_angles", None)
+        angles = pop_snap_angles() if callable(pop_snap_angles) else ()
+        if len(angles):
+            mean = float(sum(angles) / len(angles))
+            pl_module.log("vtr/snap_angle_mean", mean, on_step=False, on_epoch=True, batch_size=1)
 
     def _round_settings(self) -> RoundSettings:
         return RoundSettings(

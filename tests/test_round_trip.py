@@ -113,6 +113,20 @@ def dataset_224(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def tiny_prerendered(tiny_dataset, tmp_path_factory):
+    """A copy of the tiny dataset with prerendered views (K = 90: 8 per training object), for the config whose
+    synthesizer reads them."""
+    import shutil
+
+    from lightning_vtr.synthesis import prerender_views
+
+    root = tmp_path_factory.mktemp("tiny_prerendered") / "data"
+    shutil.copytree(tiny_dataset, root)
+    assert not prerender_views(root, k=90, progress=False).failed
+    return root
+
+
+@pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     """The user's folder: their model module and a copy of the Zero-1-to-3 config naming a tiny local model."""
     folder = tmp_path_factory.mktemp("user")
@@ -171,6 +185,8 @@ def fitted(request, tiny_dataset, dataset_224, workspace, monkeypatch) -> Fitted
     case = request.param
     monkeypatch.chdir(workspace)
     if case not in _FITTED:
+        if "prerendered" in case:  # its synthesizer reads views rendered into the dataset
+            tiny_dataset = request.getfixturevalue("tiny_prerendered")
         data, data_args = _data_args(case, tiny_dataset, dataset_224)
         run_dir = workspace / "runs" / case.replace(":", "_")
         source = _source_args(case, workspace)

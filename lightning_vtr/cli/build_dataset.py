@@ -90,6 +90,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--finalize", action="store_true", help="only write metadata.json once every shard has finished")
     add("--layout", default="auto", choices=SOURCE_LAYOUTS, help="source folder layout")
     add("--up-axis", choices=UP_AXES, default=None, help="meshes' up axis (default: y for ShapeNet, z for generic)")
+    add(
+        "--prerender-views",
+        action="store_true",
+        help="also render every training object's candidate viewpoints into objects/<cat>/<id>/prerendered/ for "
+        "PrerenderedSynthesizer (training without OpenGL), once the dataset is finalized; this shard's share with "
+        "--shard. On a finished build with no build option given, only this step runs",
+    )
+    add(
+        "--prerender-interval",
+        type=positive_int,
+        default=30,
+        help="--prerender-views: bin interval K in degrees of the rendered grid, dividing 180 (default 30: 72 views)",
+    )
     add("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -105,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         report = finalize_dataset(args.output)
         print(report.summary())
         print(dataset_summary(args.output))
-        return 0
+        return _prerender(args, args.output) if args.prerender_views else 0
     given = {
         "objects_per_category": args.objects_per_category,
         "categories": args.categories,
@@ -119,6 +132,9 @@ def run(args: argparse.Namespace) -> int:
         "pitch_range": args.pitch_range,
     }
     given = {k: v for k, v in given.items() if v is not None}
+    finished = args.output is not None and (args.output / "metadata.json").is_file()
+    if args.prerender_views and finished and not given and not args.embedded and args.source == "procedural":
+        return _prerender(args, args.output)  # a finished build, no build option given: only the new step
     if args.embedded:
         if args.source != "procedural":
             raise ValueError(f"--embedded builds the procedural source, got --source {args.source!r}")
@@ -140,9 +156,26 @@ def run(args: argparse.Namespace) -> int:
     print(report.summary())
     if report.finalized:
         print(dataset_summary(output))
+        if args.prerender_views:
+            return _prerender(args, output)
     elif args.shard[1] > 1:
         print(
             f"Shard {args.shard[0]}/{args.shard[1]} done; metadata.json is written when every shard has finished "
             f"(or run `lightning-vtr build-dataset {output} --finalize`)."
         )
+        if args.prerender_views:
+            print(
+                "Prerendered views need the split, known once the dataset is finalized: then run "
+                f"`lightning-vtr build-dataset {output} --prerender-views --shard {args.shard[0]}/{args.shard[1]}` "
+                "(every shard), or once without --shard."
+            )
     return 0
+
+
+def _prerender(args: argparse.Namespace, output: Path) -> int:
+    """The ``--prerender-views`` pass of this shard over a finished dataset; status 1 when an object failed."""
+    from lightning_vtr.synthesis.prerendered import prerender_views
+
+    report = prerender_views(output, k=args.prerender_interval, shard=args.shard, progress=not args.no_progress)
+    print(report.summary())
+    return 1 if report.failed else 0

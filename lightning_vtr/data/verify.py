@@ -43,6 +43,7 @@ PROBLEM_KINDS: tuple[str, ...] = (
     "inconsistent",
     "unsafe_name",
     "outside",
+    "prerendered",
 )
 
 #: Problems an error message lists before it says how many more there are.
@@ -58,7 +59,9 @@ class DatasetProblem:
         kind: one of :data:`PROBLEM_KINDS`; ``"unsafe_name"``: a category, object id or view-set name that is
             not a plain path component (the message names the entry and the rule it breaks, see
             :mod:`lightning_vtr.utils.paths`); ``"outside"``: an image, voxel file or folder of an object that is
-            a symlink leading out of the dataset (it is not read).
+            a symlink leading out of the dataset (it is not read); ``"prerendered"``: the object's
+            ``prerendered/`` views (``build-dataset --prerender-views``) lack their index, a listed image, or an
+            image that decodes at the dataset's size, or a training object has none in a prerendered dataset.
         message: what is wrong with it.
         expected: the value ``metadata.json`` implies (``None`` when there is no single value).
         actual: the value found.
@@ -139,6 +142,7 @@ class _Expected:
     resolution: int
     view_sets: tuple[str, ...]
     views_per_set: int | None
+    prerendered: bool = False  # the dataset records prerendered views: every training object must have them
 
 
 def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bool = True) -> VerifyReport:
@@ -190,6 +194,7 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
         resolution=int(meta["resolution"]),
         view_sets=tuple(name for name in meta["view_sets"] if name not in bad_names),
         views_per_set=int(views_per_set) if views_per_set is not None else None,
+        prerendered=(root / "prerendered.json").is_file(),
     )
     objects = [(key, info) for key, info in meta["objects"].items() if key not in bad_names]
 
@@ -197,6 +202,8 @@ def verify_dataset(root: str | Path, *, workers: int | None = None, progress: bo
     report = VerifyReport(root=root, objects=len(meta["objects"]))
     report.problems.extend(_unsafe_problem(err) for err in unsafe)
     report.problems.extend(_check_splits(root, meta))
+    if expected.prerendered:  # imported once here, not in every forked worker
+        import lightning_vtr.synthesis.prerendered  # noqa: F401
     bar = tqdm(total=len(objects), desc=f"verifying {root.name}", unit="obj", disable=not progress, dynamic_ncols=True)
     for problems, files in _map_objects(expected, objects, workers or _usable_cpus()):
         report.problems.extend(problems)
@@ -280,6 +287,49 @@ def _check_object(expected: _Expected, key: str, info: Any) -> tuple[list[Datase
         set_problems, set_files = _check_view_set(directory, view_set, views[view_set], key, expected)
         problems += set_problems
         files += set_files
+    prerendered_problems, prerendered_files = _check_prerendered(directory, key, info.get("split"), expected)
+    return problems + prerendered_problems, files + prerendered_files
+
+
+def _check_prerendered(directory: Path, key: str, split: Any, expected: _Expected) -> tuple[list[DatasetProblem], int]:
+    """The object's ``prerendered/`` folder, where it has one (a training object of a prerendered dataset must):
+    its index reads, and every viewpoint it lists has an image that decodes at the dataset's size."""
+    folder = directory / "prerendered"  # lightning_vtr.synthesis.prerendered.PRERENDERED_DIR
+    if not folder.is_dir():
+        if expected.prerendered and split == "train":
+            hint = f"run `lightning-vtr build-dataset {expected.root} --prerender-views`"
+            return [
+                DatasetProblem(folder, "prerendered", f"training object {key!r} has no prerendered views; {hint}")
+            ], 0
+        return [], 0
+    outside = _outside(folder, expected)
+    if outside is not None:
+        return [outside], 0
+    # imported only for a dataset that has prerendered views (it imports torch)
+    from lightning_vtr.synthesis.prerendered import INDEX_FILE, read_prerendered_index
+
+    try:
+        _, paths, size = read_prerendered_index(folder)
+    except FileNotFoundError:
+        return [DatasetProblem(folder / INDEX_FILE, "prerendered", "the prerendered views' index does not exist")], 0
+    except ValueError as err:
+        return [DatasetProblem(folder / INDEX_FILE, "prerendered", str(err))], 0
+    problems = []
+    if size != expected.image_size:
+        problems.append(
+            DatasetProblem(folder / INDEX_FILE, "prerendered", "index of another image size", expected.image_size, size)
+        )
+    files = 0
+    for path in paths:
+        if not path.is_file():
+            problems.append(DatasetProblem(path, "prerendered", "a prerendered view listed in index.json is missing"))
+            continue
+        files += 1
+        problem = _outside(path, expected) or _check_image(path, expected.image_size)
+        if problem is not None:
+            problems.append(
+                DatasetProblem(problem.path, "prerendered", problem.message, problem.expected, problem.actual)
+            )
     return problems, files
 
 

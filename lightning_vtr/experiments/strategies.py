@@ -20,6 +20,11 @@ file of yours with the shipped rows. Example rows::
         class_path: my_selectors.FarthestViews
         init_args: {k: 30}
       callback_kwargs: {fraction: 0.2}
+    mine_prerendered:
+      title: Default rule, prerendered views
+      description: the default rule served from views rendered into the dataset (no OpenGL while training)
+      selector: error_guided
+      synthesizer: {class_path: lightning_vtr.synthesis.PrerenderedSynthesizer}
 
 A row's ``selector`` is a registry name (its arguments in ``selector_kwargs``) or ``{class_path, init_args}``
 (``selector_kwargs`` then adds to ``init_args``). An argument may itself be ``{class_path, init_args}``, an object
@@ -59,11 +64,19 @@ __all__ = [
 
 STRATEGIES_FILE = Path(__file__).with_name("strategies.yaml")
 """The YAML file of named strategies shipped with the package."""
-ROW_KEYS = ("title", "description", "selector", "selector_kwargs", "callback_kwargs", "max_samples_fraction")
+ROW_KEYS = (
+    "title",
+    "description",
+    "selector",
+    "selector_kwargs",
+    "callback_kwargs",
+    "max_samples_fraction",
+    "synthesizer",
+)
 """The keys a row of a strategies file may hold."""
 _RESERVED_CALLBACK_KEYS = {
     "selector": "the row's `selector` builds it",
-    "synthesizer": "the report supplies it",
+    "synthesizer": "a row names its own with the row key `synthesizer`",
     "max_samples": "a count depends on the dataset's size; use `max_samples_fraction`",
 }
 """Callback arguments a row may not set: the report supplies them, or they depend on a dataset's size."""
@@ -92,6 +105,9 @@ class StrategyVariant:
         description: one line saying what the strategy does.
         max_samples_fraction: cap on the generated samples kept in the datamodule, as a share of the training
             objects (the callback's ``max_samples`` is :meth:`max_samples` of the dataset's count); ``None``: no cap.
+        synthesizer: ``{class_path, init_args}`` of the callback's :class:`~lightning_vtr.synthesis.base.Synthesizer`
+            (e.g. ``lightning_vtr.synthesis.PrerenderedSynthesizer``), used instead of the one the report supplies;
+            ``None``: the report's (mesh rendering by default).
 
     Raises:
         ValueError: ``selector`` is neither a registered selector nor an importable ``ViewSelector`` class, or
@@ -108,6 +124,7 @@ class StrategyVariant:
     title: str = ""
     description: str = ""
     max_samples_fraction: float | None = None
+    synthesizer: Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.selector is not None:
@@ -118,6 +135,25 @@ class StrategyVariant:
         # read-only copies: a registry entry cannot be changed through a caller's dict
         object.__setattr__(self, "selector_kwargs", MappingProxyType(dict(self.selector_kwargs)))
         object.__setattr__(self, "callback_kwargs", MappingProxyType(dict(self.callback_kwargs)))
+        if self.synthesizer is not None:
+            if not _is_class_spec(self.synthesizer):
+                raise ValueError(f"`synthesizer` must be {{class_path, init_args}}, got {self.synthesizer!r}")
+            object.__setattr__(self, "synthesizer", MappingProxyType(dict(self.synthesizer)))
+
+    def make_synthesizer(self) -> Any:
+        """The row's own synthesizer, built from :attr:`synthesizer`.
+
+        Returns:
+            A new :class:`~lightning_vtr.synthesis.base.Synthesizer`, or ``None`` when the row names none.
+
+        Example::
+
+            StrategyVariant("error_guided", synthesizer={"class_path": "lightning_vtr.synthesis.PrerenderedSynthesizer"}
+                            ).make_synthesizer()  # PrerenderedSynthesizer(root=None)
+        """
+        if self.synthesizer is None:
+            return None
+        return build_arguments({"synthesizer": dict(self.synthesizer)})["synthesizer"]
 
     def max_samples(self, train_objects: int) -> int | None:
         """The callback's ``max_samples`` on a dataset of ``train_objects`` training objects.
@@ -336,6 +372,23 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
         _unknown(f"{where}, callback_kwargs", callback_kwargs, known)
     elif row.get("max_samples_fraction") is not None:
         raise StrategyFileError(f"{where}: `max_samples_fraction` needs a selector (this row has none)")
+    synthesizer = row.get("synthesizer")
+    if synthesizer is not None:
+        from lightning_vtr.models.registry import import_class
+        from lightning_vtr.synthesis.base import Synthesizer
+
+        if selector is None:
+            raise StrategyFileError(f"{where}: `synthesizer` needs a selector (this row has none)")
+        if not _is_class_spec(synthesizer) or not isinstance(synthesizer["class_path"], str):
+            raise StrategyFileError(
+                f"{where}: `synthesizer` must be {{class_path: module.Class, init_args: {{...}}}}, got {synthesizer!r}"
+            )
+        _check_nested(synthesizer, f"{where}, synthesizer")
+        cls = import_class(synthesizer["class_path"], f"{where}, synthesizer")
+        if not (isinstance(cls, type) and issubclass(cls, Synthesizer)):
+            raise StrategyFileError(
+                f"{where}, synthesizer: {synthesizer['class_path']} is not a lightning_vtr.synthesis.Synthesizer subclass"
+            )
     try:
         return StrategyVariant(
             selector,
@@ -344,6 +397,7 @@ def _variant(path: Path, name: Any, row: Any) -> StrategyVariant:
             title=row["title"].strip(),
             description=" ".join(row["description"].split()),
             max_samples_fraction=row.get("max_samples_fraction"),
+            synthesizer=synthesizer,
         )
     except ValueError as error:
         raise StrategyFileError(f"{where}: {error}") from error

@@ -540,7 +540,8 @@ def make_strategy(
             default rule) or a row of a strategies file of yours.
         config: supplies ``fraction`` and ``seed`` of the callback, and the dataset of a row's
             ``max_samples_fraction``.
-        synthesizer: the callback's synthesizer (``None``: mesh rendering).
+        synthesizer: the callback's synthesizer (``None``: mesh rendering); a row that names its own
+            (:attr:`~lightning_vtr.experiments.strategies.StrategyVariant.synthesizer`) uses that one instead.
         selector_kwargs: arguments of the selector class, over the variant's (e.g. ``{"k": 15}`` for
             error-guided).
         callback_kwargs: arguments of :class:`~lightning_vtr.callback.ErrorGuidedViewAugmentation`, over the
@@ -575,6 +576,8 @@ def make_strategy(
             training_objects(config) if train_objects is None else train_objects
         )
     options = callback_arguments(selector.uses_pool, options)
+    if variant.synthesizer is not None:  # the row's own synthesizer is part of its strategy
+        synthesizer = variant.make_synthesizer()
     return ErrorGuidedViewAugmentation(selector=selector, synthesizer=synthesizer, **options)
 
 
@@ -634,7 +637,11 @@ def resolved_strategy(
     arguments["pool_prefer_others"] = pool.get("prefer_others", bool(options.get("pool_prefer_others", True)))
     if capped:
         arguments["max_samples_fraction"] = variant.max_samples_fraction
-    return {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
+    resolved = {"selector": variant.selector, "selector_kwargs": dict(selector.arguments), "callback_kwargs": arguments}
+    if variant.synthesizer is not None:  # a row's own synthesizer makes another run
+        resolved["synthesizer"] = {"class_path": variant.synthesizer["class_path"],
+                                   "init_args": dict(variant.synthesizer.get("init_args") or {})}  # fmt: skip
+    return resolved
 
 
 _PLACEMENT = frozenset({"out", "accelerator", "devices", "num_workers"})

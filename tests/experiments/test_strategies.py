@@ -19,8 +19,10 @@ def test_the_shipped_file_is_the_registry_and_no_row_depends_on_a_dataset_size()
     assert load_variants() == VARIANTS
     rows = yaml.safe_load(STRATEGIES_FILE.read_text())
     assert list(rows) == list(VARIANTS)
-    # the paper's Table 1 rows, area-uniform Random and the package's default rule, nothing else
-    assert list(VARIANTS) == ["none", "nature", "random", "random_area", "viat", "mvtn", "paper", "error_guided"]
+    # the paper's Table 1 rows, area-uniform Random, the package's default rule and that rule on prerendered views
+    assert list(VARIANTS) == [
+        "none", "nature", "random", "random_area", "viat", "mvtn", "paper", "error_guided", "prerendered"
+    ]  # fmt: skip
     for name, variant in VARIANTS.items():
         assert variant.title and variant.description, name
         assert "max_samples" not in variant.callback_kwargs, name  # a count would fit one dataset only
