@@ -235,6 +235,20 @@ def test_predict_refuses_a_class_path_outside_the_package(
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    "recorded", ["lightning_vtr.cli.__main__.Net", "lightning_vtr.cli.predict.run", "lightning_vtr._private.Net"]
+)
+def test_predict_refuses_a_command_line_or_private_module_of_the_package(fitted, picture, capsys, recorded, tmp_path):
+    """``lightning_vtr.cli.__main__`` runs the command line when imported: a checkpoint may not name it."""
+    ckpt = _variant(fitted, tmp_path / "main.ckpt", **{CLASS_PATH_KEY: recorded})
+    before = set(sys.modules)
+    status = main(["predict", "--ckpt", str(ckpt), "--images", str(picture), "--out", str(tmp_path / "out")])
+    assert status == 2
+    assert f"names the model class '{recorded}'" in _one_line(capsys)
+    assert "lightning_vtr.cli.__main__" not in set(sys.modules) - before
+    assert not (tmp_path / "out").exists()
+
+
 def test_robustness_and_load_model_refuse_a_class_path_outside_the_package(
     fitted, evil_folder, tiny_dataset, capsys, tmp_path
 ):

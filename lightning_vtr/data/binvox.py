@@ -110,6 +110,7 @@ def read_binvox(
     up_axis: Literal["y", "z"] = ...,
     return_transform: Literal[False] = ...,
     resolution: int | None = ...,
+    root: str | os.PathLike | None = ...,
 ) -> np.ndarray: ...
 @overload
 def read_binvox(
@@ -118,6 +119,7 @@ def read_binvox(
     up_axis: Literal["y", "z"] = ...,
     return_transform: Literal[True],
     resolution: int | None = ...,
+    root: str | os.PathLike | None = ...,
 ) -> tuple[np.ndarray, tuple[float, float, float], float]: ...
 @overload
 def read_binvox(
@@ -126,6 +128,7 @@ def read_binvox(
     up_axis: Literal["y", "z"] = ...,
     return_transform: bool = ...,
     resolution: int | None = ...,
+    root: str | os.PathLike | None = ...,
 ) -> np.ndarray | tuple[np.ndarray, tuple[float, float, float], float]: ...
 def read_binvox(
     path: str | os.PathLike,
@@ -133,6 +136,7 @@ def read_binvox(
     up_axis: Literal["y", "z"] = "z",
     return_transform: bool = False,
     resolution: int | None = None,
+    root: str | os.PathLike | None = None,
 ) -> np.ndarray | tuple[np.ndarray, tuple[float, float, float], float]:
     """Read a binvox file into a bool array ``V[i, j, k]`` indexed ``(x, y, z)``.
 
@@ -147,16 +151,22 @@ def read_binvox(
         return_transform: also return the header's ``translate`` and ``scale`` (as stored, file frame).
         resolution: the ``R`` of the ``R x R x R`` grid expected (a dataset's ``resolution``); ``None`` takes
             any size up to the limit.
+        root: the dataset's folder the file belongs to, if any: a file whose resolved path is not inside it (a
+            symlink leading out of the dataset) is refused, see :func:`~lightning_vtr.utils.limits.check_regular_file`.
 
     Returns:
         ``(D, H, W)`` bool (``(R, R, R)`` for the usual cubic files), or ``(voxels, translate, scale)``.
 
     Raises:
         ValueError: bad header or data that do not decode to ``D * H * W`` voxels; names the file.
-        DataError: (a ``ValueError``) the header's sizes are not ``resolution`` or exceed the limit.
+        DataError: (a ``ValueError``) the header's sizes are not ``resolution`` or exceed the limit; the file is not
+            a regular file (a FIFO, a device, a folder) or leads out of ``root``.
     """
+    from lightning_vtr.utils.limits import check_regular_file
+
     check_choice("up_axis", up_axis, UP_AXES)
     path = Path(path)
+    check_regular_file(path, root=root)
     with open(path, "rb") as f:
         dims, translate, scale = _read_header(f, path)
         _check_dims(dims, resolution, path)

@@ -53,20 +53,24 @@ def apply_image_transform(transform: Callable[..., Tensor], images: np.ndarray, 
     return transform(images, key=key) if isinstance(transform, ImageTransform) else transform(images)
 
 
-def load_rgba(path: str | Path, image_size: int | None = None) -> np.ndarray:
+def load_rgba(path: str | Path, image_size: int | None = None, *, root: str | Path | None = None) -> np.ndarray:
     """Read an image file as ``(H, W, 4)`` uint8 RGBA (opaque alpha for RGB files).
 
     Args:
         path: the picture.
         image_size: the side of the dataset's images, where known: a picture whose header states more than
             :func:`~lightning_vtr.utils.limits.image_side_limit` of it per side is refused before decoding.
+        root: the dataset's folder (``ObjectRecord.root``), where known: a picture whose resolved path is not
+            inside it (a symlink leading out of the dataset) is refused.
 
     Raises:
-        DataError: the picture is larger than the limit (names the file, its size and the limit).
+        DataError: the picture is larger than the limit (names the file, its size and the limit); it is not a
+            regular file (a FIFO, a device, a folder) or leads out of ``root``
+            (:func:`~lightning_vtr.utils.limits.check_regular_file`).
         OSError: it cannot be read or decoded.
     """
     try:
-        with open_image(path, image_side_limit(image_size)) as img:
+        with open_image(path, image_side_limit(image_size), root=root) as img:
             return np.asarray(img.convert("RGBA"))
     except DataError:
         raise
@@ -76,10 +80,13 @@ def load_rgba(path: str | Path, image_size: int | None = None) -> np.ndarray:
 
 def load_voxels(record: ObjectRecord) -> Tensor:
     """``(R, R, R)`` float occupancy of an object, in the package frame whatever its file's up axis; a file of
-    another resolution than the record's dataset states is refused before its grid is allocated."""
+    another resolution than the record's dataset states is refused before its grid is allocated, and so is one
+    leading out of the record's dataset folder (``record.root``) or that is not a regular file."""
     up_axis: Literal["y", "z"] = getattr(record, "voxel_up_axis", "z")  # read_binvox checks it
     resolution = getattr(record, "resolution", None)
-    return torch.from_numpy(read_binvox(record.voxel_path, up_axis=up_axis, resolution=resolution).astype(np.float32))
+    root = getattr(record, "root", None)
+    voxels = read_binvox(record.voxel_path, up_axis=up_axis, resolution=resolution, root=root)
+    return torch.from_numpy(voxels.astype(np.float32))
 
 
 class VTRDataset(Dataset):
@@ -183,7 +190,7 @@ class VTRDataset(Dataset):
         rec = self.records[index // self.repeats]
         paths, viewpoints = rec.views[self.view_set]
         chosen = self.view_indices(index)
-        images = np.stack([load_rgba(paths[i], rec.image_size) for i in chosen])
+        images = np.stack([load_rgba(paths[i], rec.image_size, root=getattr(rec, "root", None)) for i in chosen])
         return {
             "images": apply_image_transform(self.transform, images, (self.seed, self.epoch, index)),
             "voxels": load_voxels(rec),

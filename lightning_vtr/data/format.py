@@ -106,6 +106,8 @@ class ObjectRecord:
             the loaders refuse a larger picture before decoding it (:mod:`lightning_vtr.utils.limits`).
         resolution: the ``R`` of the dataset's voxel grids, where the layout states it: the loaders refuse a
             voxel file of another size before allocating it.
+        root: the dataset's folder, resolved (``os.path.realpath``), where the layout has one: the loaders refuse
+            an image or voxel file whose resolved path is not inside it (a symlink leading out of the dataset).
 
     Example:
         >>> directory = object_dir("data", "chair", "chair_0001")
@@ -123,6 +125,7 @@ class ObjectRecord:
     voxel_up_axis: str = "z"
     image_size: int | None = None
     resolution: int | None = None
+    root: Path | None = None
 
     @property
     def key(self) -> str:
@@ -319,7 +322,9 @@ def _entry_problem(key: str, info: Any) -> str | None:
     return None
 
 
-def _record(root: Path, key: str, info: Mapping, meta: Mapping[str, Any], source: Path) -> ObjectRecord:
+def _record(
+    root: Path, key: str, info: Mapping, meta: Mapping[str, Any], source: Path, resolved_root: Path
+) -> ObjectRecord:
     category, object_id = check_object_key(key, source=source, entry="object key")
     problem = _entry_problem(key, info)
     if problem is not None:
@@ -339,6 +344,7 @@ def _record(root: Path, key: str, info: Mapping, meta: Mapping[str, Any], source
         views=views,
         image_size=int(meta["image_size"]),
         resolution=int(meta["resolution"]),
+        root=resolved_root,
     )
 
 
@@ -370,7 +376,8 @@ def scan_dataset(root: str | Path, *, check_files: bool = False) -> list[ObjectR
     root = Path(root)
     meta = load_metadata(root)
     source = root / "metadata.json"
-    records = [_record(root, key, info, meta, source) for key, info in meta["objects"].items()]
+    resolved = Path(os.path.realpath(root))  # once: the loaders check every file's resolved path against it
+    records = [_record(root, key, info, meta, source, resolved) for key, info in meta["objects"].items()]
     if check_files:
         for r in records:
             for path in [r.voxel_path, *(p for paths, _ in r.views.values() for p in paths)]:
@@ -391,7 +398,7 @@ def read_object(root: str | Path, category: str, object_id: str) -> ObjectRecord
     key = f"{category}/{object_id}"
     if key not in meta["objects"]:
         raise DatasetFormatError(f"{root / 'metadata.json'} lists no object {key!r}")
-    return _record(root, key, meta["objects"][key], meta, root / "metadata.json")
+    return _record(root, key, meta["objects"][key], meta, root / "metadata.json", Path(os.path.realpath(root)))
 
 
 def dataset_summary(root: str | Path, *, check_entries: bool = True) -> str:

@@ -206,6 +206,22 @@ def _open_picture(path: Path) -> Any:
     return image
 
 
+#: Pictures larger than this per side are scaled down (aspect kept) as they are read: the model sees a few hundred
+#: pixels, and a full-size picture of thousands of pixels a side would take gigabytes on its way there.
+WORKING_SIDE = 1024
+
+
+def _working_copy(image: Any) -> Any:
+    """``image`` scaled down to at most :data:`WORKING_SIDE` per side (box filter), else itself."""
+    from PIL import Image
+
+    if max(image.size) <= WORKING_SIDE:
+        return image
+    scale = WORKING_SIDE / max(image.size)
+    size = (max(1, round(image.size[0] * scale)), max(1, round(image.size[1] * scale)))
+    return image.resize(size, Image.Resampling.BOX)
+
+
 def check_view_folder(folder: Path, given: str | Path) -> None:
     """Open every picture and mask of an image folder once (before the model loads or anything is written).
 
@@ -252,15 +268,16 @@ def read_view_folder(
     for path in views:
         with _open_picture(path) as image:
             has_alpha = image.mode in ("RGBA", "LA", "PA") or (image.mode == "P" and "transparency" in image.info)
-            rgba = np.asarray(image.convert("RGBA")).copy()
+            size = image.size
+            rgba = np.asarray(_working_copy(image.convert("RGBA"))).copy()
         if path.stem in masks:
             with _open_picture(masks[path.stem]) as mask_image:
-                mask = np.asarray(mask_image.convert("L"))
-            if mask.shape != rgba.shape[:2]:
-                raise DataError(
-                    f"the mask {masks[path.stem].name!r} must have the size of {path.name!r} "
-                    f"({rgba.shape[1]}x{rgba.shape[0]}), got {mask.shape[1]}x{mask.shape[0]}"
-                )
+                if mask_image.size != size:
+                    raise DataError(
+                        f"the mask {masks[path.stem].name!r} must have the size of {path.name!r} "
+                        f"({size[0]}x{size[1]}), got {mask_image.size[0]}x{mask_image.size[1]}"
+                    )
+                mask = np.asarray(_working_copy(mask_image.convert("L")))
             rgba[..., 3] = mask
         elif not has_alpha and background_key is not None:
             rgba[..., 3] = _alpha_from_key(rgba[..., :3], background_key, key_tolerance)

@@ -16,6 +16,13 @@ from typing import Any
 
 from lightning_vtr.experiments import training
 from lightning_vtr.experiments.config import ExperimentConfig
+from lightning_vtr.experiments.output_files import (
+    PRETRAIN_TIMING,
+    RUN_RESULTS,
+    SELECTION_RECORD,
+    read_output_json,
+    run_remedy,
+)
 from lightning_vtr.experiments.report_config import ReportConfig
 from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.utils.io import atomic_write, open_append
@@ -73,7 +80,10 @@ def _run_seed(config: ReportConfig, runs: list[ReportRun], seed: int, results: R
     """One seed's pretraining and runs, in plan order, into ``results``."""
     seed_exp = config.seed_config(seed)
     pretrained = training.pretrain(seed_exp)
-    results.pretraining[seed] = read_json(Path(seed_exp.out) / "pretrain" / "timing.json")
+    timing = Path(seed_exp.out) / "pretrain" / "timing.json"
+    results.pretraining[seed] = read_output_json(
+        timing, PRETRAIN_TIMING, f"delete that file ({timing}); the report then shows the pretraining's times as unknown"
+    )
     payloads, views, validation = results.payloads, results.views, results.validation
     for run in runs:
         if run.same_as is not None:
@@ -214,8 +224,10 @@ def write_json(path: Path, payload: dict) -> None:
     atomic_write(path, json.dumps(payload, indent=1))  # a killed report never leaves a half-written cache
 
 
-def read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.is_file() else None
+def read_json(path: Path, schema: Any, remedy: str) -> Any:
+    """The JSON file ``path`` of the report's output folder checked against ``schema``, ``None`` when missing
+    (:func:`~lightning_vtr.experiments.output_files.read_output_json`)."""
+    return read_output_json(path, schema, remedy)
 
 
 def single_view(run: ReportRun, exp: ExperimentConfig, source: dict) -> dict:
@@ -223,8 +235,9 @@ def single_view(run: ReportRun, exp: ExperimentConfig, source: dict) -> dict:
     assert run.single_view_of is not None, "single_view tests single-view runs only"
     run_dir = join_under(exp.out, run.name)
     result_file = run_dir / "results.json"
-    if result_file.is_file():
-        return json.loads(result_file.read_text())
+    cached = read_output_json(result_file, RUN_RESULTS, run_remedy(run_dir))
+    if cached is not None:
+        return cached
     model = training.load_run_model(exp, Path(exp.out) / run.single_view_of)
     timer = training.StageTimer()
     start = time.perf_counter()
@@ -249,7 +262,8 @@ def _selection_view_sets(run_dir: Path) -> Any:
     import torch
 
     records = sorted((run_dir / "vtr_selection").glob("*.json"), key=lambda p: (p.stem != "start", p.stem))
-    view_sets = [v for path in records for v in json.loads(path.read_text()).get("view_sets", [])]
+    remedy = run_remedy(run_dir)
+    view_sets = [v for path in records for v in read_output_json(path, SELECTION_RECORD, remedy).get("view_sets", [])]
     if not view_sets:
         return None
     size = len(view_sets[0])

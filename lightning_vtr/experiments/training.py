@@ -717,8 +717,8 @@ def run_strategy(
     """
     run_dir = join_under(config.out, run_name or name)
     result_file = run_dir / "results.json"
-    if result_file.is_file():
-        cached = json.loads(result_file.read_text())
+    cached = read_output_json(result_file, RUN_RESULTS, run_remedy(run_dir))
+    if cached is not None:
         # A cache is only a result of *this* configuration: refuse one written under another. Where the
         # run lives and what hardware it used do not change what it measures.
         current, saved = _measured(_comparable(config)), cached.get("config", {})
@@ -820,9 +820,9 @@ def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
     check_int("repeats", repeats, minimum=1)
     run_dir = Path(run_dir)
     cache = run_dir / "validation.json"
-    if cache.is_file():
-        cached = json.loads(cache.read_text())
-        if cached.get("repeats") == repeats:
+    cached = read_output_json(cache, VALIDATION, f"delete that file ({cache}) to validate the run again")
+    if cached is not None:
+        if cached["repeats"] == repeats:
             return cached["results"]
     model = load_run_model(config, run_dir)
     dm = make_datamodule(config, model)

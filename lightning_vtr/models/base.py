@@ -268,13 +268,15 @@ class VoxelReconstructionModule(L.LightningModule, abc.ABC):
                 found += [sub, *subclasses(sub)]
             return found
 
+        from lightning_vtr.models.registry import is_package_class_path  # the registry imports this module
+
         saved: type | str | None = None
         class_path = hparams.get("_class_path")
         if isinstance(class_path, str):
             module, _, name = class_path.rpartition(".")
             saved = class_path  # a checkpoint never makes us import a module outside lightning_vtr
             try:
-                if module.startswith("lightning_vtr.") and all(p.isidentifier() for p in class_path.split(".")):
+                if is_package_class_path(class_path):
                     saved = getattr(importlib.import_module(module), name)
                 elif module in sys.modules:  # imported already: nothing runs
                     saved = getattr(sys.modules[module], name)

@@ -88,6 +88,10 @@ def _check_class_path_form(path: str, named: str) -> tuple[str, str]:
     return module, attribute
 
 
+#: Subpackages of ``lightning_vtr`` whose classes a checkpoint may not name by itself.
+_NOT_NAMEABLE = frozenset({"cli"})
+
+
 def is_package_class_path(path: object) -> bool:
     """Whether ``path`` is a class path ``lightning_vtr.<module>.Class``: the only classes a checkpoint may name
     by itself. Nothing is imported.
@@ -95,11 +99,19 @@ def is_package_class_path(path: object) -> bool:
     Example:
         >>> is_package_class_path("lightning_vtr.models.pix2vox.Pix2VoxPlusPlus"), is_package_class_path("evil.Net")
         (True, False)
+        >>> is_package_class_path("lightning_vtr.cli.__main__.Net")
+        False
     """
     if not isinstance(path, str) or not path.startswith(f"{PACKAGE}."):
         return False
     parts = path.split(".")
-    return len(parts) >= 3 and all(part.isidentifier() for part in parts)
+    # Not a private or dunder module (`lightning_vtr.cli.__main__` runs the command line when imported), nor the
+    # command line's modules: a checkpoint names a model, selector or synthesizer class of the library.
+    return (
+        len(parts) >= 3
+        and all(part.isidentifier() and not part.startswith("_") for part in parts)
+        and parts[1] not in _NOT_NAMEABLE
+    )
 
 
 def import_class(path: str, option: str = "--model", *, working_folder: bool = True) -> type:

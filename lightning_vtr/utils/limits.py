@@ -13,12 +13,18 @@ against these limits first and refuse with one line naming the file, the size an
   dataset: 768 px), any other picture at most :data:`MAX_IMAGE_SIDE` per side, and never more pixels than
   PIL's decompression-bomb limit (``PIL.Image.MAX_IMAGE_PIXELS``);
 * a binvox grid of the resolution the dataset states, and never more than :data:`MAX_VOXEL_SIDE` per side.
+
+Before any of these files is opened, :func:`check_regular_file` makes sure it is a regular file (a FIFO, which
+a tar archive keeps, would block the reader forever; a device may never end) and, given the dataset's folder,
+that its resolved path lies inside that folder (a symlink leading out of a dataset is not followed).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import re
+import stat
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +38,8 @@ __all__ = [
     "MAX_JSON_BYTES",
     "MAX_JSON_BYTES_VARIABLE",
     "MAX_VOXEL_SIDE",
+    "check_regular_file",
+    "file_kind",
     "image_side_limit",
     "max_json_bytes",
     "open_image",
@@ -67,11 +75,73 @@ def max_json_bytes() -> int:
     return int(text)
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """The parsed JSON file ``path``, after checking its size against :func:`max_json_bytes`.
+def file_kind(mode: int) -> str:
+    """What an ``os.stat`` mode is, in words, for a message: ``"a regular file"``, ``"a FIFO (named pipe)"``, ...
+
+    Example:
+        >>> import stat
+        >>> file_kind(stat.S_IFIFO | 0o644), file_kind(stat.S_IFDIR | 0o755)
+        ('a FIFO (named pipe)', 'a folder')
+    """
+    kinds = (
+        (stat.S_ISREG, "a regular file"),
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+    )
+    return next((name for test, name in kinds if test(mode)), f"a file of mode {stat.filemode(mode)}")
+
+
+@functools.lru_cache(maxsize=64)
+def _resolved_root(root: str) -> str:
+    """``os.path.realpath(root)``, once per root and process."""
+    return os.path.realpath(root)
+
+
+def check_regular_file(path: str | os.PathLike, *, root: str | os.PathLike | None = None) -> None:
+    """Refuse to read ``path`` unless it is a regular file (links followed) and, with ``root``, lies inside ``root``.
+
+    Every reader of this module and :func:`~lightning_vtr.data.binvox.read_binvox` call it before opening a file:
+    a FIFO (a tar archive keeps them) would block the reader forever, a device may never end.
+
+    Args:
+        path: the file about to be read.
+        root: the dataset's folder the file belongs to (``None``: no such check): a file whose resolved path
+            (``os.path.realpath``, one per call; the root's is computed once) is not inside it, a symlink leading
+            out of the dataset, is refused.
 
     Raises:
-        DataError: the file is larger than the limit (the message names the file, its size and the limit).
+        DataError: ``path`` leads out of ``root``, or is a FIFO, a socket, a device or a folder; one line naming
+            the file and what it is.
+        FileNotFoundError: it does not exist (an ``OSError``, as ``open`` raises).
+    """
+    from lightning_vtr.errors import DataError
+
+    if root is not None:
+        base = _resolved_root(os.fspath(root))
+        target = os.path.realpath(path)
+        if target != base and not target.startswith(base.rstrip(os.sep) + os.sep):
+            raise DataError(
+                f"{os.fspath(path)} is a symbolic link leading out of the dataset (to {target}); not read"
+            )
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        raise DataError(f"{os.fspath(path)}: a regular file was expected, found {file_kind(mode)}")
+
+
+def read_json(path: str | os.PathLike, *, root: str | os.PathLike | None = None) -> Any:
+    """The parsed JSON file ``path``, after checking its size against :func:`max_json_bytes`.
+
+    Args:
+        path: the JSON file.
+        root: the dataset's folder it belongs to, if any: a file leading out of it is refused
+            (:func:`check_regular_file`).
+
+    Raises:
+        DataError: the file is larger than the limit (the message names the file, its size and the limit); it
+            is not a regular file, or leads out of ``root`` (:func:`check_regular_file`).
         OSError: the file cannot be read.
         json.JSONDecodeError: it is not JSON (a ``ValueError``).
 
@@ -82,6 +152,7 @@ def read_json(path: str | os.PathLike) -> Any:
     import json
 
     path = Path(path)
+    check_regular_file(path, root=root)
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         limit = max_json_bytes()
@@ -107,20 +178,25 @@ def image_side_limit(image_size: int | None) -> int:
     return MAX_IMAGE_SIDE if image_size is None else IMAGE_SIDE_FACTOR * int(image_size)
 
 
-def open_image(path: str | os.PathLike, max_side: int | None = None) -> Image.Image:
+def open_image(
+    path: str | os.PathLike, max_side: int | None = None, *, root: str | os.PathLike | None = None
+) -> Image.Image:
     """``PIL.Image.open(path)``, refused before any pixel is decoded when its header states a larger picture.
 
     Args:
         path: the picture.
         max_side: the largest width and height accepted (``None``: :data:`MAX_IMAGE_SIDE`); see
             :func:`image_side_limit`.
+        root: the dataset's folder it belongs to, if any: a picture leading out of it is refused
+            (:func:`check_regular_file`).
 
     Returns:
         The opened image, not yet decoded (``.load()``, ``.convert()`` decode it); close it after use.
 
     Raises:
         DataError: the picture is larger than ``max_side`` per side, or than PIL's decompression-bomb limit;
-            the message names the file, its size and the limit.
+            the message names the file, its size and the limit; it is not a regular file, or leads out of
+            ``root`` (:func:`check_regular_file`).
         OSError: PIL cannot open it (``PIL.UnidentifiedImageError`` is one).
     """
     from PIL import Image
@@ -128,6 +204,7 @@ def open_image(path: str | os.PathLike, max_side: int | None = None) -> Image.Im
     from lightning_vtr.errors import DataError
 
     limit = MAX_IMAGE_SIDE if max_side is None else int(max_side)
+    check_regular_file(path, root=root)
     try:
         with warnings.catch_warnings():  # PIL warns of a large header; the size is checked just below
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)

@@ -39,3 +39,24 @@ def test_pil_reads_a_picture_of_each_suffix_in_every_reader(tmp_path, suffix):
     folder = BackgroundFolder(path.parent)
     assert folder.paths == [path]
     np.testing.assert_allclose(folder.load(0).reshape(-1, 3).mean(0), COLOUR, atol=3)
+
+
+def test_a_large_picture_is_read_at_the_working_size_with_its_mask(tmp_path):
+    """A picture of thousands of pixels a side is scaled down as it is read (a 17 KB PNG of 8192 x 8192 took 4 GB
+    through the pipeline at full size); its mask follows it."""
+    folder = tmp_path / "views"
+    folder.mkdir()
+    side = predict.WORKING_SIDE * 3
+    picture = Image.new("RGB", (side, side // 2), COLOUR)
+    picture.save(folder / "big.png")
+    mask = Image.new("L", (side, side // 2), 0)
+    mask.paste(255, (0, 0, side // 2, side // 2))  # the left half is the object
+    mask.save(folder / "big_mask.png")
+    pictures, names, _ = read_view_folder(folder)
+    assert names == ["big.png"]
+    (square,) = pictures
+    assert square.shape == (predict.WORKING_SIDE, predict.WORKING_SIDE, 4)  # 1024 x 512, padded to a square
+    rows = square[predict.WORKING_SIDE // 4 : 3 * predict.WORKING_SIDE // 4]  # the picture's band
+    assert (rows[:, : predict.WORKING_SIDE // 2 - 2, 3] == 255).all()
+    assert (rows[:, predict.WORKING_SIDE // 2 + 2 :, 3] == 0).all()
+    assert tuple(rows[0, 0, :3]) == COLOUR
