@@ -8,6 +8,7 @@ disagree on a path or a field. Every reader validates what it reads and raises
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -266,7 +267,7 @@ def load_metadata(root: str | Path, *, check_names: bool = True, check_entries: 
             the entry and the rule.
     """
     path = Path(root) / "metadata.json"
-    if not path.is_file():
+    if not path.exists():  # one that is not a regular file (a FIFO, a folder) is refused by read_json
         hint = (
             "the build has not finished: re-run `lightning-vtr build-dataset` with the same options "
             "(or `lightning-vtr build-dataset ROOT --finalize` once every shard is done)"

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import stat
 import time
 import warnings
 from collections.abc import Iterator, Mapping
@@ -27,6 +28,7 @@ from tqdm.auto import tqdm
 
 from lightning_vtr.data.binvox import read_binvox
 from lightning_vtr.data.format import SPLITS, image_path, load_metadata, object_dir, unsafe_names
+from lightning_vtr.utils.limits import file_kind
 from lightning_vtr.utils.paths import UnsafeNameError, check_name, check_no_case_collisions
 from lightning_vtr.utils.validation import check_int
 
@@ -59,7 +61,8 @@ class DatasetProblem:
         kind: one of :data:`PROBLEM_KINDS`; ``"unsafe_name"``: a category, object id or view-set name that is
             not a plain path component (the message names the entry and the rule it breaks, see
             :mod:`lightning_vtr.utils.paths`); ``"outside"``: an image, voxel file or folder of an object that is
-            a symlink leading out of the dataset (it is not read); ``"prerendered"``: the object's
+            a symlink leading out of the dataset (it is not read); ``"unreadable"`` also: a file that is not a regular
+            file (a FIFO, a socket, a device, a folder; it is not opened); ``"prerendered"``: the object's
             ``prerendered/`` views (``build-dataset --prerender-views``) lack their index, a listed image, or an
             image that decodes at the dataset's size, or a training object has none in a prerendered dataset.
         message: what is wrong with it.
@@ -321,7 +324,7 @@ def _check_prerendered(directory: Path, key: str, split: Any, expected: _Expecte
         )
     files = 0
     for path in paths:
-        if not path.is_file():
+        if not path.exists():
             problems.append(DatasetProblem(path, "prerendered", "a prerendered view listed in index.json is missing"))
             continue
         files += 1
@@ -338,8 +341,11 @@ def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
     from lightning_vtr.utils.limits import read_json
 
     path = root / "splits.json"
-    if not path.is_file():
+    if not path.exists():
         return [DatasetProblem(path, "missing", "the dataset's splits.json does not exist")]
+    special = _not_regular(path)
+    if special is not None:
+        return [special]
     try:
         splits = read_json(path)
     except (OSError, ValueError) as err:
@@ -391,15 +397,19 @@ def _check_splits(root: Path, meta: Mapping[str, Any]) -> list[DatasetProblem]:
 def _check_object_json(directory: Path, category: str, object_id: str) -> list[DatasetProblem]:
     """``object.json``: present, valid, and naming the object."""
     from lightning_vtr.data.format import DatasetFormatError, read_object_json
+    from lightning_vtr.errors import DataError
 
     path = directory / "object.json"
-    if not path.is_file():
+    if not path.exists():
         return [DatasetProblem(path, "missing", "the object's object.json does not exist")]
+    special = _not_regular(path)
+    if special is not None:
+        return [special]
     try:
         own = read_object_json(directory)
     except UnsafeNameError as err:
         return [_unsafe_problem(err)]
-    except DatasetFormatError as err:
+    except (DatasetFormatError, DataError) as err:
         return [DatasetProblem(path, "unreadable", f"invalid object.json: {err}")]
     problems = []
     if (own["category"], own["object_id"]) != (category, object_id):
@@ -411,9 +421,12 @@ def _check_object_json(directory: Path, category: str, object_id: str) -> list[D
 
 
 def _check_mesh(path: Path) -> list[DatasetProblem]:
-    """``mesh.ply`` (optional): where there is one, it loads and has faces."""
-    if not path.is_file():
+    """``mesh.ply`` (optional): where there is one, it is a regular file, loads and has faces."""
+    if not path.exists():
         return []
+    special = _not_regular(path)
+    if special is not None:
+        return [special]
     import trimesh
 
     try:
@@ -427,8 +440,11 @@ def _check_mesh(path: Path) -> list[DatasetProblem]:
 
 def _check_voxels(path: Path, resolution: int) -> DatasetProblem | None:
     """The problem of one voxel file, if any."""
-    if not path.is_file():
+    if not path.exists():
         return DatasetProblem(path, "missing", "the object's voxel file does not exist")
+    special = _not_regular(path)
+    if special is not None:
+        return special
     try:
         voxels = read_binvox(path)
     except (OSError, ValueError) as err:
@@ -524,9 +540,25 @@ def _outside(path: Path, expected: _Expected) -> DatasetProblem | None:
     return DatasetProblem(path, "outside", f"a symlink leading out of the dataset, to {target}; not read")
 
 
+def _not_regular(path: Path) -> DatasetProblem | None:
+    """An ``"unreadable"`` problem when ``path`` (links followed) is not a regular file: a FIFO would block its
+    reader forever, a device may never end; ``None`` when it is one or cannot be looked at (its reader says why)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return DatasetProblem(path, "unreadable", f"a regular file was expected, found {file_kind(mode)}; not read")
+
+
 def _check_image(path: Path, size: int) -> DatasetProblem | None:
     """The problem of one image, if any: its size read from the header, then decoded in full, as the training
-    loader decodes it (a picture of another size is not decoded)."""
+    loader decodes it (a picture of another size is not decoded); a FIFO or another file that is not a regular
+    file is not opened."""
+    special = _not_regular(path)
+    if special is not None:
+        return special
     try:
         with warnings.catch_warnings():  # PIL warns of a large header: its size is what is checked here
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)

@@ -439,7 +439,10 @@ def predict_dataset(
                 paths = records[i].views[view_set][0]
                 yield {
                     "name": f"{view_set}/{item['category']}/{item['object_id']}",
-                    "display": [load_rgba(paths[j], records[i].image_size) for j in dataset.view_indices(i)],
+                    "display": [
+                        load_rgba(paths[j], records[i].image_size, root=records[i].root)
+                        for j in dataset.view_indices(i)
+                    ],
                     "images": item["images"],
                     "predicted": pred,
                     "target": item["voxels"],

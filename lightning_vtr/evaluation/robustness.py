@@ -600,7 +600,7 @@ def robustness_map(
                     paths, src_vp = rec.views[source_view_set]
                     from lightning_vtr.data.dataset import load_rgba
 
-                    source = np.stack([load_rgba(p) for p in paths])
+                    source = np.stack([load_rgba(p, root=getattr(rec, "root", None)) for p in paths])
                 else:
                     _, src_vp = (getattr(rec, "views", None) or {}).get(source_view_set, ([], np.zeros((0, 2))))
                     source = np.zeros((0, 0, 0, 4), np.uint8)

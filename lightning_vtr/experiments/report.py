@@ -60,7 +60,9 @@ The work is split in steps, each a module: :mod:`~lightning_vtr.experiments.repo
 Resumable: a finished run (its ``results.json``, refused when written under another experiment
 configuration), a finished pretraining (``pretrained.ckpt``) and a finished single-view evaluation are
 reused, and an interrupted fit resumes from its ``last.ckpt``; so a killed report re-run only does what
-is missing.
+is missing. Every JSON file read back from ``out`` is checked against what the report writes
+(:mod:`~lightning_vtr.experiments.output_files`): a truncated or tampered one is refused with one line naming
+the file, the field, the type expected and found, and which file or folder to delete to redo it.
 """
 
 from __future__ import annotations

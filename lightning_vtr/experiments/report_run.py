@@ -82,7 +82,9 @@ def _run_seed(config: ReportConfig, runs: list[ReportRun], seed: int, results: R
     pretrained = training.pretrain(seed_exp)
     timing = Path(seed_exp.out) / "pretrain" / "timing.json"
     results.pretraining[seed] = read_output_json(
-        timing, PRETRAIN_TIMING, f"delete that file ({timing}); the report then shows the pretraining's times as unknown"
+        timing,
+        PRETRAIN_TIMING,
+        f"delete that file ({timing}); the report then shows the pretraining's times as unknown",
     )
     payloads, views, validation = results.payloads, results.views, results.validation
     for run in runs:

@@ -23,6 +23,7 @@ from lightning_vtr.callback import ErrorGuidedViewAugmentation
 from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation.tables import results_from_test_output
 from lightning_vtr.experiments.config import FINETUNE_LR_SCHEDULES, ExperimentConfig
+from lightning_vtr.experiments.output_files import RUN_RESULTS, VALIDATION, read_output_json, run_remedy
 from lightning_vtr.experiments.strategies import (
     STRATEGIES,
     VARIANTS,
@@ -706,6 +707,9 @@ def run_strategy(
             ``out``, ``accelerator``, ``devices``, ``num_workers`` and ``trainer_kwargs["enable_progress_bar"]``
             differ), ``name`` is not in
             :data:`VARIANTS` (without ``callback``), or ``config.model`` is not in :data:`MODELS`.
+        DataError: the cached ``results.json`` is not valid JSON or a field has another type than this function
+            writes (:data:`~lightning_vtr.experiments.output_files.RUN_RESULTS`); the one line names the file and
+            the field.
         lightning_vtr.utils.paths.UnsafePathError: the run's directory resolves outside ``config.out`` (a symlink
             leading out).
 
@@ -811,6 +815,8 @@ def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
         FileNotFoundError: the run has no ``checkpoints/last.ckpt`` (it was not fitted by :func:`run_strategy`).
         ValueError: ``repeats`` is below 1.
         TypeError: ``repeats`` is not an int.
+        DataError: the cached ``validation.json`` is not valid JSON or a field has another type than this function
+            writes; the one line names the file and the field.
 
     Example::
 
@@ -821,9 +827,8 @@ def validate_run(config: ExperimentConfig, run_dir: Path, repeats: int) -> dict:
     run_dir = Path(run_dir)
     cache = run_dir / "validation.json"
     cached = read_output_json(cache, VALIDATION, f"delete that file ({cache}) to validate the run again")
-    if cached is not None:
-        if cached["repeats"] == repeats:
-            return cached["results"]
+    if cached is not None and cached["repeats"] == repeats:
+        return cached["results"]
     model = load_run_model(config, run_dir)
     dm = make_datamodule(config, model)
     dm.test_split, dm.test_repeats = "val", repeats

@@ -141,7 +141,8 @@ def read_json(path: str | os.PathLike, *, root: str | os.PathLike | None = None)
 
     Raises:
         DataError: the file is larger than the limit (the message names the file, its size and the limit); it
-            is not a regular file, or leads out of ``root`` (:func:`check_regular_file`).
+            is not a regular file, or leads out of ``root`` (:func:`check_regular_file`); it nests deeper than
+            Python's recursion limit.
         OSError: the file cannot be read.
         json.JSONDecodeError: it is not JSON (a ``ValueError``).
 
@@ -164,7 +165,12 @@ def read_json(path: str | os.PathLike, *, root: str | os.PathLike | None = None)
                 f"(set ${MAX_JSON_BYTES_VARIABLE} to read larger files)"
             )
         data = f.read(limit + 1)
-    return json.loads(data)
+    try:
+        return json.loads(data)
+    except RecursionError:  # a few KB of brackets nest deeper than the parser recurses
+        from lightning_vtr.errors import DataError
+
+        raise DataError(f"{path}: not valid JSON (nested deeper than Python's recursion limit)") from None
 
 
 def image_side_limit(image_size: int | None) -> int:

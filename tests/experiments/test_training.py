@@ -111,7 +111,12 @@ def test_config_rejects_an_unknown_schedule():
 
 def test_run_strategy_refuses_a_cached_result_of_another_configuration(tmp_path):
     config = ExperimentConfig(out=str(tmp_path), finetune_epochs=3)
-    payload = {"strategy": "none", "config": experiment._comparable(config), "results": {"aligned": {"iou@0.4": 0.5}}}
+    payload = {
+        "strategy": "none",
+        "config": experiment._comparable(config),
+        "train_seconds": 1.0,
+        "results": {"aligned": {"iou@0.4": 0.5}},
+    }
     (tmp_path / "none").mkdir()
     (tmp_path / "none" / "results.json").write_text(json.dumps(payload))
     missing = tmp_path / "never-read.ckpt"
