@@ -496,7 +496,9 @@ class VTRDataModule(L.LightningDataModule):
         """``(images (V, H, W, 4) uint8, viewpoints (V, 2) degrees)`` of one object's view set."""
         paths, viewpoints = record.views[view_set]
         idx = list(range(len(paths))) if indices is None else list(indices)
-        images = [load_rgba(paths[i], getattr(record, "image_size", None), root=getattr(record, "root", None)) for i in idx]
+        images = [
+            load_rgba(paths[i], getattr(record, "image_size", None), root=getattr(record, "root", None)) for i in idx
+        ]
         return np.stack(images), np.asarray(viewpoints, dtype=np.float64)[idx]
 
     def object_voxels(self, record: ObjectRecord) -> torch.Tensor:

@@ -123,9 +123,7 @@ def check_regular_file(path: str | os.PathLike, *, root: str | os.PathLike | Non
         base = _resolved_root(os.fspath(root))
         target = os.path.realpath(path)
         if target != base and not target.startswith(base.rstrip(os.sep) + os.sep):
-            raise DataError(
-                f"{os.fspath(path)} is a symbolic link leading out of the dataset (to {target}); not read"
-            )
+            raise DataError(f"{os.fspath(path)} is a symbolic link leading out of the dataset (to {target}); not read")
     mode = os.stat(path).st_mode
     if not stat.S_ISREG(mode):
         raise DataError(f"{os.fspath(path)}: a regular file was expected, found {file_kind(mode)}")

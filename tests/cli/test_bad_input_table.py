@@ -613,6 +613,35 @@ ROWS += [
         "`num_views` must be an integer in [1, 64], got 1000000", 1, "many_views", absent=["out"],
         note="before any training"),
 ]  # fmt: skip
+
+
+def _planted_voxels(tmp: Path, kind: str) -> None:
+    """:func:`_tiny_data` whose test object's ``model.binvox`` is a symlink to ``elsewhere.binvox`` (``"link"``) or
+    a FIFO (``"fifo"``), as a tar archive may hold."""
+    import os
+
+    _tiny_data(tmp)
+    voxel = tmp / "data" / "objects" / "chair" / "chair_0001" / "model.binvox"
+    if kind == "link":
+        voxel.rename(tmp / "elsewhere.binvox")
+        voxel.symlink_to(tmp / "elsewhere.binvox")
+    else:
+        voxel.unlink()
+        os.mkfifo(voxel)
+
+
+SETUPS["voxels_linked_out"] = lambda tmp, mp: _planted_voxels(tmp, "link")
+SETUPS["voxels_fifo"] = lambda tmp, mp: _planted_voxels(tmp, "fifo")
+_VOXELS = "{tmp}/data/objects/chair/chair_0001/model.binvox"
+_DATA = ["predict", "--ckpt", "{tmp}/good.ckpt", "--data", "{tmp}/data", "--view-sets", "aligned", "--out",
+         "{tmp}/out", "--no-progress"]  # fmt: skip
+ROWS += [
+    Row("predict", "`--data` an object's `model.binvox` a symlink leading out of the dataset", _DATA,
+        _VOXELS + " is a symbolic link leading out of the dataset (to {tmp}/elsewhere.binvox); not read", 1,
+        "voxels_linked_out"),
+    Row("predict", "`--data` an object's `model.binvox` a FIFO (named pipe)", _DATA,
+        _VOXELS + ": a regular file was expected, found a FIFO (named pipe)", 1, "voxels_fifo"),
+]  # fmt: skip
 _PROTOCOL = "does not satisfy lightning_vtr.ReconstructionModel: missing %s (see lightning_vtr.protocol)"
 _ROW = "{tmp}/%s.yaml, row 'mine'"
 ROWS += [
