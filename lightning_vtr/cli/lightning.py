@@ -276,7 +276,11 @@ def run_lightning_cli(argv: Sequence[str] | None = None) -> int:
     from lightning_vtr.models.registry import check_checkpoint
 
     words = list(sys.argv[1:] if argv is None else argv)
-    if os.getcwd() not in sys.path:  # `--model mymodel.MyVoxelNet` from the folder holding mymodel.py
+    named = [name for name in _option_values(words, ("--model", "--model.class_path")) if "." in name]
+    configs = _option_values(words, ("--config", "-c"))
+    if (named or configs) and os.getcwd() not in sys.path:
+        # `--model mymodel.MyVoxelNet` (or a config's class_path) from the folder holding mymodel.py: only classes
+        # the user names import from the working folder, never one a checkpoint names
         sys.path.insert(0, os.getcwd())
     for name in _option_values(words, ("--model", "--model.class_path")):
         if "." in name:  # a class path: one line for what jsonargparse would bury in its long message
