@@ -192,7 +192,8 @@ def test_make_strategy_builds_every_registered_selector():
         assert (callback.fraction, callback.seed) == (0.2, 3)
     with pytest.raises(
         ValueError,
-        match="`name` must be one of 'none', 'nature', 'random', 'random_area', .*'paper', 'error_guided', got 'ours'",
+        match="`name` must be one of 'none', 'nature', 'random', 'random_area', .*'paper', 'error_guided', "
+        "'prerendered', got 'ours'",
     ):
         experiment.make_strategy("ours", config)
 
@@ -251,7 +252,8 @@ def _callback_settings(callback) -> dict:
 def test_variants_registry_holds_the_table_1_strategies_and_the_named_variants():
     assert list(experiment.VARIANTS)[:2] == ["none", "nature"]
     assert set(experiment.STRATEGIES) <= set(experiment.VARIANTS)
-    assert set(experiment.VARIANTS) - set(experiment.STRATEGIES) == {"random_area", "error_guided"}
+    assert set(experiment.VARIANTS) - set(experiment.STRATEGIES) == {"random_area", "error_guided", "prerendered"}
+    assert experiment.VARIANTS["prerendered"].synthesizer is not None  # the row names its own synthesizer
     titles = [v.title for v in experiment.VARIANTS.values()]
     assert all(titles) and len(set(titles)) == len(titles)
     assert experiment.VARIANTS["none"].selector is None
