@@ -297,3 +297,23 @@ def odd_model(fscore_points: int):
     return Pix2VoxPlusPlus(
         preset="tiny", num_views=2, fscore_points=fscore_points, categories=("airplane", "chair", "table")
     )
+
+
+def save_tiny_checkpoint(path: Path, *, seed: int | None = None, **datamodule_kw: Any) -> Path:
+    """A checkpoint of a random tiny Pix2Vox++ (64 px) at ``path``, as ``Trainer.fit`` writes one: its weights, its
+    hyperparameters and a datamodule's (``datamodule_kw`` over ``image_size=64, batch_size=4``)."""
+    from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
+
+    if seed is not None:
+        torch.manual_seed(seed)
+    model = Pix2VoxPlusPlus(preset="tiny")
+    dm = VTRDataModule(None, **{"image_size": 64, "batch_size": 4, **datamodule_kw})
+    checkpoint = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": dict(model.hparams),
+        "datamodule_hyper_parameters": dict(dm.hparams),
+        "pytorch-lightning_version": L.__version__,
+    }
+    model.on_save_checkpoint(checkpoint)
+    torch.save(checkpoint, path)
+    return path

@@ -12,21 +12,17 @@ import re
 import time
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import pytest
-import torch
-from helpers import one_thread
+from helpers import one_thread, save_tiny_checkpoint
 from PIL import Image
 
 from lightning_vtr.cli import main
 from lightning_vtr.data.binvox import read_binvox, write_binvox
-from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.data.dataset import VTRDataset, load_rgba, load_voxels
 from lightning_vtr.data.format import scan_dataset
 from lightning_vtr.data.verify import verify_dataset
 from lightning_vtr.errors import DataError
-from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 from lightning_vtr.utils.limits import check_regular_file, open_image, read_json
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs and symlinks of a POSIX system")
@@ -39,18 +35,7 @@ _SIZE = 64
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """A tiny Pix2Vox++ checkpoint (64 px inputs)."""
-    model = Pix2VoxPlusPlus(preset="tiny")
-    dm = VTRDataModule(None, image_size=_SIZE, batch_size=4)
-    ckpt = {
-        "state_dict": model.state_dict(),
-        "hyper_parameters": dict(model.hparams),
-        "datamodule_hyper_parameters": dict(dm.hparams),
-        "pytorch-lightning_version": L.__version__,
-    }
-    model.on_save_checkpoint(ckpt)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save(ckpt, path)
-    return path
+    return save_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt", image_size=_SIZE)
 
 
 @pytest.fixture(scope="module")

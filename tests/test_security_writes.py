@@ -12,15 +12,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import lightning as L
 import pytest
-import torch
-from helpers import one_thread
+from helpers import one_thread, save_tiny_checkpoint
 
 from lightning_vtr.cli import main
-from lightning_vtr.data.builder import ensure_embedded_dataset
-from lightning_vtr.data.datamodule import VTRDataModule
-from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
 
 _one_thread = pytest.fixture(autouse=True)(one_thread)
 
@@ -28,24 +23,13 @@ _one_thread = pytest.fixture(autouse=True)(one_thread)
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """A tiny Pix2Vox++ checkpoint (64 px inputs)."""
-    model = Pix2VoxPlusPlus(preset="tiny")
-    dm = VTRDataModule(None, image_size=64, batch_size=4)
-    ckpt = {
-        "state_dict": model.state_dict(),
-        "hyper_parameters": dict(model.hparams),
-        "datamodule_hyper_parameters": dict(dm.hparams),
-        "pytorch-lightning_version": L.__version__,
-    }
-    model.on_save_checkpoint(ckpt)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save(ckpt, path)
-    return path
+    return save_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt")
 
 
 @pytest.fixture(scope="module")
-def data():
-    """The embedded dataset (built once, kept under ``$LIGHTNING_VTR_DATA``)."""
-    return ensure_embedded_dataset(progress=False)
+def data(tiny_dataset):
+    """The suite's tiny dataset (64 px, three categories)."""
+    return tiny_dataset
 
 
 def _files(folder: Path) -> list[Path]:

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import lightning as L
 import pytest
 import torch
+from helpers import save_tiny_checkpoint
 
-from lightning_vtr.data.datamodule import VTRDataModule
 from lightning_vtr.evaluation import make_datamodule, robustness_map
 from lightning_vtr.evaluation.robustness_callback import ObjectSubset, spread_over_categories
 from lightning_vtr.models.pix2vox import Pix2VoxPlusPlus
@@ -20,20 +19,9 @@ K = 90  # 2 x 4 = 8 bins
 def checkpoints(tmp_path_factory):
     """Two tiny Pix2Vox++ checkpoints with different weights."""
     folder = tmp_path_factory.mktemp("validity_ckpt")
-    dm = VTRDataModule(None, image_size=64, batch_size=4)
     paths = []
     for seed in (0, 1):
-        torch.manual_seed(seed)
-        model = Pix2VoxPlusPlus(preset="tiny")
-        ckpt = {
-            "state_dict": model.state_dict(),
-            "hyper_parameters": dict(model.hparams),
-            "datamodule_hyper_parameters": dict(dm.hparams),
-            "pytorch-lightning_version": L.__version__,
-        }
-        model.on_save_checkpoint(ckpt)
-        paths.append(folder / f"{seed}.ckpt")
-        torch.save(ckpt, paths[-1])
+        paths.append(save_tiny_checkpoint(folder / f"{seed}.ckpt", seed=seed))
     return paths
 
 

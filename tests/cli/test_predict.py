@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from helpers import one_thread
+from helpers import one_thread, save_tiny_checkpoint
 from PIL import Image
 
 from lightning_vtr.cli import main
@@ -36,18 +36,7 @@ def _sheet_shape(rows, columns, panel=128):
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """A tiny Pix2Vox++ checkpoint whose datamodule normalised with ``pm1`` (so predict must read it back)."""
-    model = Pix2VoxPlusPlus(preset="tiny")
-    dm = VTRDataModule(None, image_size=64, normalize="pm1", batch_size=4)
-    ckpt = {
-        "state_dict": model.state_dict(),
-        "hyper_parameters": dict(model.hparams),
-        "datamodule_hyper_parameters": dict(dm.hparams),
-        "pytorch-lightning_version": L.__version__,
-    }
-    model.on_save_checkpoint(ckpt)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save(ckpt, path)
-    return path
+    return save_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt", normalize="pm1")
 
 
 @pytest.fixture
@@ -238,7 +227,6 @@ def test_an_unknown_model_class_is_named(checkpoint):
 
 
 def test_a_checkpoint_no_class_loads_names_the_model_option(tmp_path):
-    import lightning as L
 
     from lightning_vtr.errors import DataError
 

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import csv
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
-from helpers import one_thread
+from helpers import one_thread, save_tiny_checkpoint
 
 from lightning_vtr.cli import main
 from lightning_vtr.data.datamodule import VTRDataModule
@@ -27,20 +26,9 @@ K = 90  # 2 x 4 = 8 bins
 def checkpoints(tmp_path_factory):
     """Two tiny Pix2Vox++ checkpoints with different weights (``a.ckpt``, ``b.ckpt``)."""
     folder = tmp_path_factory.mktemp("robustness_ckpt")
-    dm = VTRDataModule(None, image_size=64, batch_size=4)
     paths = []
     for seed, name in ((0, "a"), (1, "b")):
-        torch.manual_seed(seed)
-        model = Pix2VoxPlusPlus(preset="tiny")
-        ckpt = {
-            "state_dict": model.state_dict(),
-            "hyper_parameters": dict(model.hparams),
-            "datamodule_hyper_parameters": dict(dm.hparams),
-            "pytorch-lightning_version": L.__version__,
-        }
-        model.on_save_checkpoint(ckpt)
-        paths.append(folder / f"{name}.ckpt")
-        torch.save(ckpt, paths[-1])
+        paths.append(save_tiny_checkpoint(folder / f"{name}.ckpt", seed=seed))
     return paths
 
 
