@@ -7,6 +7,7 @@ pytest puts ``tests/`` on the path (``pythonpath = ["tests"]``), so a test modul
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -317,3 +318,24 @@ def save_tiny_checkpoint(path: Path, *, seed: int | None = None, **datamodule_kw
     model.on_save_checkpoint(checkpoint)
     torch.save(checkpoint, path)
     return path
+
+
+#: A user's own ViewSelector subclass with no ``settings()`` method, as a module's source (tests write it to
+#: ``myselector.py`` / ``sideviews.py`` and name ``SideViews`` by its class path).
+USER_SELECTOR_SOURCE = textwrap.dedent(
+    """
+    import torch
+
+    from lightning_vtr.selection import ViewSelector
+
+
+    class SideViews(ViewSelector):
+        def __init__(self, pitch: float = 10.0):
+            self.pitch = pitch
+
+        def select(self, predicted, target, categories, generator=None, context=None):
+            yaw = torch.tensor([90.0, -90.0, 180.0])
+            views = torch.stack([yaw, torch.full((3,), self.pitch)], dim=-1)
+            return views.expand(predicted.shape[0], 3, 2).clone()
+    """
+)

@@ -135,37 +135,46 @@ def _path_argument(node: ast.Call) -> ast.AST | None:
     return node.args[0] if node.args else None
 
 
+class _ScopedVisitor(ast.NodeVisitor):
+    """An AST visitor that knows the dotted name of the function or class it is in (``scope``)."""
+
+    def __init__(self) -> None:
+        self.scope: list[str] = []
+
+    def where(self, module: str) -> str:
+        return f"{module}:{'.'.join(self.scope) or '<module>'}"
+
+    def visit_FunctionDef(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) -> None:
+        self.scope.append(node.name)
+        self.generic_visit(node)
+        self.scope.pop()
+
+    visit_AsyncFunctionDef = visit_FunctionDef
+    visit_ClassDef = visit_FunctionDef
+
+
 def audit(source: str, module: str) -> dict[str, list[str]]:
     """``{"module:function": [flagged expression, ...]}`` of one module's source."""
     found: dict[str, list[str]] = {}
-    scope: list[str] = []
 
-    def flag(node: ast.AST) -> None:
-        found.setdefault(f"{module}:{'.'.join(scope) or '<module>'}", []).append(ast.unparse(node))
-
-    class Visitor(ast.NodeVisitor):
-        def visit_FunctionDef(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) -> None:
-            scope.append(node.name)
-            self.generic_visit(node)
-            scope.pop()
-
-        visit_AsyncFunctionDef = visit_FunctionDef
-        visit_ClassDef = visit_FunctionDef
+    class Visitor(_ScopedVisitor):
+        def flag(self, node: ast.AST) -> None:
+            found.setdefault(self.where(module), []).append(ast.unparse(node))
 
         def visit_BinOp(self, node: ast.BinOp) -> None:
             if isinstance(node.op, ast.Div) and data_derived(node.right):
-                flag(node)
+                self.flag(node)
             self.generic_visit(node)
 
         def visit_Call(self, node: ast.Call) -> None:
             name = _call_name(node)
             appended = node.args if name == "joinpath" else node.args[1:]
             if name in JOIN_CALLS and any(data_derived(a) for a in appended):
-                flag(node)
+                self.flag(node)
             is_write = name in WRITE_CALLS or (name == "open" and _is_write_open(node))
             target = _path_argument(node) if is_write else None
             if target is not None and data_derived(target):
-                flag(node)
+                self.flag(node)
             self.generic_visit(node)
 
     Visitor().visit(ast.parse(source))
@@ -305,20 +314,11 @@ def _raw_write(node: ast.Call) -> bool:
 def raw_writes(source: str, module: str) -> dict[str, list[str]]:
     """``{"module:function": [raw write call, ...]}`` of one module's source."""
     found: dict[str, list[str]] = {}
-    scope: list[str] = []
 
-    class Visitor(ast.NodeVisitor):
-        def visit_FunctionDef(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) -> None:
-            scope.append(node.name)
-            self.generic_visit(node)
-            scope.pop()
-
-        visit_AsyncFunctionDef = visit_FunctionDef
-        visit_ClassDef = visit_FunctionDef
-
+    class Visitor(_ScopedVisitor):
         def visit_Call(self, node: ast.Call) -> None:
             if _raw_write(node):
-                found.setdefault(f"{module}:{'.'.join(scope) or '<module>'}", []).append(ast.unparse(node))
+                found.setdefault(self.where(module), []).append(ast.unparse(node))
             self.generic_visit(node)
 
     Visitor().visit(ast.parse(source))

@@ -11,6 +11,7 @@ import textwrap
 
 import pytest
 import torch
+from helpers import USER_SELECTOR_SOURCE as SELECTOR_SOURCE
 from helpers import one_thread
 
 from lightning_vtr.cli import main
@@ -55,24 +56,6 @@ MODEL_SOURCE = textwrap.dedent(
 
     class NotAModel(L.LightningModule):
         pass
-    """
-)
-#: ``myselector.py``: a ViewSelector subclass of the user's own.
-SELECTOR_SOURCE = textwrap.dedent(
-    """
-    import torch
-
-    from lightning_vtr.selection import ViewSelector
-
-
-    class SideViews(ViewSelector):
-        def __init__(self, pitch: float = 10.0):
-            self.pitch = pitch
-
-        def select(self, predicted, target, categories, generator=None, context=None):
-            yaw = torch.tensor([90.0, -90.0, 180.0])
-            views = torch.stack([yaw, torch.full((3,), self.pitch)], dim=-1)
-            return views.expand(predicted.shape[0], 3, 2).clone()
     """
 )
 STRATEGIES = textwrap.dedent(

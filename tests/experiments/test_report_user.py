@@ -13,7 +13,7 @@ import textwrap
 
 import pytest
 import torch
-from helpers import one_thread
+from helpers import USER_SELECTOR_SOURCE, one_thread
 
 from lightning_vtr.cli import main
 from lightning_vtr.cli.report import add_arguments, report_config
@@ -54,22 +54,7 @@ MODEL_SOURCE = textwrap.dedent(
     """
 )
 #: ``sideviews.py``: a selector with no ``settings()`` of its own.
-SELECTOR_SOURCE = textwrap.dedent(
-    """
-    import torch
-
-    from lightning_vtr.selection import ViewSelector
-
-
-    class SideViews(ViewSelector):
-        def __init__(self, pitch: float = 10.0):
-            self.pitch = pitch
-
-        def select(self, predicted, target, categories, generator=None, context=None):
-            yaw = torch.tensor([90.0, -90.0, 180.0])
-            return torch.stack([yaw, torch.full((3,), self.pitch)], dim=-1).expand(predicted.shape[0], 3, 2).clone()
-    """
-)
+SELECTOR_SOURCE = USER_SELECTOR_SOURCE
 ROWS = textwrap.dedent(
     """
     side:
