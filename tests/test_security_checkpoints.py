@@ -132,7 +132,7 @@ def _name(node: ast.expr) -> str:
 
 def test_every_checkpoint_read_of_the_package_passes_weights_only():
     package = Path(lightning_vtr.__file__).parent
-    unsafe, loaders = [], 0
+    unsafe, loaders = [], []
     for file in sorted(package.rglob("*.py")):
         tree = ast.parse(file.read_text(), str(file))
         for node in ast.walk(tree):
@@ -147,7 +147,7 @@ def test_every_checkpoint_read_of_the_package_passes_weights_only():
             keywords = {k.arg: k.value for k in call.keywords}
             where = f"{file.relative_to(package.parent)}:{call.lineno}: {func}"
             if func in ("torch.load", "torch.serialization.load"):
-                loaders += 1
+                loaders.append(where)
                 value = keywords.get("weights_only")
                 if not (isinstance(value, ast.Constant) and value.value is True):
                     unsafe.append(where)
@@ -155,7 +155,7 @@ def test_every_checkpoint_read_of_the_package_passes_weights_only():
                 unsafe.append(where)  # Lightning's default lets TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD read a full pickle
             elif func.split(".")[-1] in ("fit", "validate", "test", "predict") and "ckpt_path" in keywords:
                 unsafe += [] if "weights_only" in keywords else [where]
-    assert loaders >= 8  # the walk sees the package's reads
+    assert any(w.startswith("lightning_vtr/models/registry.py") for w in loaders)  # the walk sees the package's reads
     assert unsafe == []
 
 

@@ -28,7 +28,7 @@ from lightning_vtr.experiments.report_plan import ReportRun
 from lightning_vtr.utils.io import atomic_write, open_append
 from lightning_vtr.utils.paths import join_under
 
-__all__ = ["ReportResults", "execute_runs", "read_json", "single_view", "write_json"]
+__all__ = ["ReportResults", "execute_runs", "single_view", "write_json"]
 
 
 @dataclass
@@ -224,12 +224,6 @@ def _run_in_parallel(config: ReportConfig, runs: list[ReportRun]) -> None:
 
 def write_json(path: Path, payload: dict) -> None:
     atomic_write(path, json.dumps(payload, indent=1))  # a killed report never leaves a half-written cache
-
-
-def read_json(path: Path, schema: Any, remedy: str) -> Any:
-    """The JSON file ``path`` of the report's output folder checked against ``schema``, ``None`` when missing
-    (:func:`~lightning_vtr.experiments.output_files.read_output_json`)."""
-    return read_output_json(path, schema, remedy)
 
 
 def single_view(run: ReportRun, exp: ExperimentConfig, source: dict) -> dict:

@@ -8,9 +8,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-from lightning_vtr.experiments.output_files import REPORT_TIMING
+from lightning_vtr.experiments.output_files import REPORT_TIMING, read_output_json
 from lightning_vtr.experiments.report_plan import ReportRun
-from lightning_vtr.experiments.report_run import read_json, write_json
+from lightning_vtr.experiments.report_run import write_json
 
 __all__ = ["finite_or_none", "record_invocation", "time_split", "time_tables"]
 
@@ -130,7 +130,9 @@ def record_invocation(path: Path, wall: float, split: dict[str, Any]) -> dict[st
     Returns:
         The file's content: ``{"invocations": [seconds, ...], "split": split with NaN as None}``.
     """
-    timing = read_json(path, REPORT_TIMING, f"delete that file ({path}) to start its record of wall times afresh")
+    timing = read_output_json(
+        path, REPORT_TIMING, f"delete that file ({path}) to start its record of wall times afresh"
+    )
     timing = timing or {"invocations": []}
     timing["invocations"].append(wall)
     timing["split"] = finite_or_none(split)

@@ -329,11 +329,8 @@ def checkpoint_hyperparameters(path: str | Path) -> tuple[dict[str, Any], dict[s
 
         model_hparams, datamodule_hparams = checkpoint_hyperparameters("last.ckpt")
     """
-    try:
-        checkpoint = torch.load(Path(path).expanduser(), map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, OSError, EOFError, ValueError, AttributeError):
-        return {}, {}
-    if not isinstance(checkpoint, dict):
+    checkpoint = _readable_checkpoint(path)
+    if checkpoint is None:
         return {}, {}
     model_hparams, datamodule_hparams = (
         checkpoint.get(key) for key in ("hyper_parameters", "datamodule_hyper_parameters")
@@ -393,20 +390,36 @@ def check_checkpoint(
 
         path = check_checkpoint("runs/vtr/last.ckpt", "--checkpoint")
     """
+    return _lightning_checkpoint(ckpt, option, trust_checkpoint=trust_checkpoint, remedy=remedy)[0]
+
+
+def _lightning_checkpoint(
+    ckpt: str | Path, option: str, *, trust_checkpoint: bool = False, remedy: str | None = None
+) -> tuple[Path, dict[str, Any] | None]:
+    """:func:`check_checkpoint`'s path and the content it read; ``None`` for a full pickle the caller trusts
+    (Lightning's to load)."""
     path = checkpoint_path(ckpt, option)
     expected = f"`{option}` must be a Lightning checkpoint (a file `Trainer.fit` saved), got {str(ckpt)!r}"
     try:
         checkpoint = read_checkpoint(ckpt, option, remedy=remedy)
     except DataError as err:
         if trust_checkpoint and "weights_only loading refuses" in str(err):
-            return path  # the caller trusts it: the full pickle is Lightning's to load
+            return path, None
         raise
     if any(key not in checkpoint for key in _LIGHTNING_KEYS):
         what = f"a plain torch.save file holding a dict of {len(checkpoint)} keys without " + " / ".join(
             repr(k) for k in _LIGHTNING_KEYS if k not in checkpoint
         )
         raise DataError(f"{expected}: {what}; save models with Trainer.fit / trainer.save_checkpoint")
-    return path
+    return path, checkpoint
+
+
+def _readable_checkpoint(path: str | Path) -> dict[str, Any] | None:
+    """The content of ``path`` read as :func:`read_checkpoint` does, ``None`` when it cannot be read so."""
+    try:
+        return read_checkpoint(path)
+    except (DataError, FileNotFoundError):
+        return None
 
 
 def _class_paths(value: Any, found: list[str], depth: int = 0) -> list[str]:
@@ -494,11 +507,8 @@ def checkpoint_class_path(path: str | Path) -> str | None:
     """The model class path a checkpoint records: ``lightning-vtr fit``'s :data:`CLASS_PATH_KEY`, else the
     ``_class_path`` LightningCLI stores with the hyperparameters; ``None`` when it records none (or cannot be
     read with ``weights_only=True``). Nothing is imported."""
-    try:
-        checkpoint = torch.load(Path(path).expanduser(), map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, OSError, EOFError, ValueError, AttributeError):
-        return None
-    if not isinstance(checkpoint, dict):
+    checkpoint = _readable_checkpoint(path)
+    if checkpoint is None:
         return None
     found = [p for p in _recorded_model_paths(checkpoint) if isinstance(p, str)]
     return found[0] if found else None
@@ -555,14 +565,8 @@ def load_model(
         model = load_model("runs/vtr/last.ckpt", "pix2vox")
         model = load_model("runs/mine/last.ckpt", "mymodel.MyVoxelNet")
     """
-    path = check_checkpoint(ckpt, option, trust_checkpoint=trust_checkpoint)
+    path, checkpoint = _lightning_checkpoint(ckpt, option, trust_checkpoint=trust_checkpoint)
     given = model_class(model) if model is not None else None
-    try:
-        checkpoint: dict[str, Any] | None = read_checkpoint(path, option)
-    except DataError:
-        if not trust_checkpoint:
-            raise
-        checkpoint = None  # a full pickle the caller trusts: Lightning reads it below
     recorded = None
     if checkpoint is not None:
         named = [class_path(given), model] if given is not None and model is not None else []
