@@ -171,24 +171,6 @@ class MVTNSelector(ViewSelector):
         spacing = 360.0 / num_views
         return cls(base_yaw=[i * spacing for i in range(num_views)], max_yaw_offset=spacing / 2, **kwargs)
 
-    def settings(self) -> dict[str, Any]:
-        """Every constructor argument (see :meth:`ViewSelector.settings`)."""
-        return {
-            "base_yaw": [float(yaw) for yaw in self.base_yaw.tolist()],
-            "base_pitch": self.base_pitch,
-            "max_yaw_offset": self.max_yaw_offset,
-            "steps": self.steps,
-            "lr": self.lr,
-            "input": self.input,
-            "threshold": self.threshold,
-            "density": self.density,
-            "image_size": self.image_size,
-            "width": self.width,
-            "hidden": self.hidden,
-            "seed": self.seed,
-        }
-
-    # ------------------------------------------------------------------------------------ public API
     def select(
         self,
         predicted: Tensor,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -97,13 +96,3 @@ class NatureSelector(ViewSelector):
         centre = torch.tensor([self.pitch_for(c) for c in categories], dtype=draw.dtype).view(batch, 1)
         pitch = clamp_pitch(centre + self.pitch_jitter * draw[..., 1] / 90.0)
         return torch.stack([draw[..., 0], pitch], dim=-1).to(predicted.device)
-
-    def settings(self) -> dict[str, Any]:
-        """``num_views``, ``pitch`` (a number or ``{category: pitch}``), ``pitch_jitter`` and ``yaw_range``."""
-        pitch = dict(self.pitch) if isinstance(self.pitch, dict) else self.pitch
-        return {
-            "num_views": self.num_views,
-            "pitch": pitch,
-            "pitch_jitter": self.pitch_jitter,
-            "yaw_range": list(self.yaw_range),
-        }

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -73,12 +73,3 @@ class RandomSelector(ViewSelector):
             generator=generator,
         )
         return views.view(batch, self.num_views, 2).to(predicted.device)
-
-    def settings(self) -> dict[str, Any]:
-        """``num_views``, ``mode``, ``yaw_range`` and ``pitch_range`` (see :meth:`ViewSelector.settings`)."""
-        return {
-            "num_views": self.num_views,
-            "mode": self.mode,
-            "yaw_range": list(self.yaw_range),
-            "pitch_range": list(self.pitch_range),
-        }

@@ -174,19 +174,6 @@ class VIATSelector(ViewSelector):
         )
         self._mixtures: dict[str, _Mixture] = {}
 
-    def settings(self) -> dict[str, Any]:
-        """Every constructor argument (see :meth:`ViewSelector.settings`)."""
-        return {
-            "num_components": self.num_components,
-            "population": self.population,
-            "lr": self.lr,
-            "iterations": self.iterations,
-            "entropy_weight": self.entropy_weight,
-            "num_views": self.num_views,
-            "model_batch_size": self.model_batch_size,
-        }
-
-    # ------------------------------------------------------------------------------------ public API
     def select(
         self,
         predicted: Tensor,
